@@ -1,0 +1,76 @@
+//! Run configuration: a preset (`tiny`, `cpu`, `paper`) with an optional TOML file on top.
+//!
+//! A user file only needs the keys it changes; everything else comes from the preset. Unknown
+//! keys are errors, so a typo never silently falls back to a default.
+
+use anyhow::{Context, Result, bail};
+use flowmimic_sim::SimConfig;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Every stage's settings.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    pub sim: SimConfig,
+}
+
+/// The built-in presets, embedded from `configs/`.
+pub const PRESETS: [(&str, &str); 3] = [
+    ("tiny", include_str!("../../../configs/tiny.toml")),
+    ("cpu", include_str!("../../../configs/cpu.toml")),
+    ("paper", include_str!("../../../configs/paper.toml")),
+];
+
+/// Overlays `top` onto `base`, table by table.
+fn merge(base: &mut toml::Table, top: toml::Table) {
+    for (key, value) in top {
+        match (base.get_mut(&key), value) {
+            (Some(toml::Value::Table(b)), toml::Value::Table(t)) => merge(b, t),
+            (_, v) => {
+                base.insert(key, v);
+            }
+        }
+    }
+}
+
+impl Config {
+    /// The preset `name`, overlaid with the TOML file `file` if given.
+    pub fn load(preset: &str, file: Option<&Path>) -> Result<Self> {
+        let Some((_, text)) = PRESETS.iter().find(|(n, _)| *n == preset) else {
+            bail!("unknown preset '{preset}'; choose one of tiny, cpu, paper");
+        };
+        let mut table: toml::Table = text.parse().with_context(|| format!("built-in preset {preset}"))?;
+        if let Some(path) = file {
+            let user = flowmimic_io::read_to_string(path)?;
+            let user: toml::Table = user.parse().with_context(|| format!("{}: not valid TOML", path.display()))?;
+            merge(&mut table, user);
+        }
+        let what = file.map_or_else(|| format!("preset {preset}"), |p| p.display().to_string());
+        let config: Config =
+            toml::Value::Table(table).try_into().with_context(|| format!("{what}: invalid settings"))?;
+        Ok(config)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_parse_and_files_override_them() {
+        for (name, _) in PRESETS {
+            Config::load(name, None).unwrap();
+        }
+        let dir = std::env::temp_dir().join(format!("flowmimic-cfg-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("mine.toml");
+        std::fs::write(&path, "[sim]\nsubsteps = 6\n").unwrap();
+        assert_eq!(Config::load("cpu", Some(&path)).unwrap().sim.substeps, 6);
+        std::fs::write(&path, "[sim]\nsubstep = 6\n").unwrap();
+        let err = format!("{:#}", Config::load("cpu", Some(&path)).unwrap_err());
+        assert!(err.contains("mine.toml") && err.contains("substep"), "{err}");
+        assert!(Config::load("huge", None).is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,163 @@
+//! `flowmimic`: walking motion capture to a fast, steerable humanoid controller.
+//!
+//! This file only parses arguments and calls the stage crates.
+
+mod config;
+
+use anyhow::Result;
+use clap::{Args, Parser, Subcommand};
+use config::Config;
+use flowmimic_sim::{Humanoid, NUM_DOFS, STATE_DIM, bench, mjcf, skeleton};
+use std::path::PathBuf;
+
+#[derive(Parser)]
+#[command(name = "flowmimic", version, about = "Fast, steerable humanoid control: motion capture -> tracking experts -> \
+Flow Matching trajectory model -> guided controller.", long_about = None)]
+struct Cli {
+    #[command(flatten)]
+    settings: Settings,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Args)]
+struct Settings {
+    /// Built-in settings to start from: tiny (tests), cpu (a laptop), paper (a GPU).
+    #[arg(long, global = true, default_value = "cpu")]
+    preset: String,
+    /// A TOML file whose keys override the preset (see configs/ for every key).
+    #[arg(long, global = true)]
+    config: Option<PathBuf>,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// The simulated humanoid: inspect the model, export its MJCF, watch it stand.
+    #[command(subcommand)]
+    Sim(SimCommand),
+    /// Measure throughput and print a table of medians.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+    /// Print the settings in force (preset plus --config) as TOML.
+    Config,
+}
+
+#[derive(Subcommand)]
+enum SimCommand {
+    /// Dimensions, mass, height and PD gains of the humanoid.
+    Info,
+    /// Write the generated MJCF (open it in MuJoCo's `simulate` to look around).
+    Xml {
+        /// Output file; prints to stdout when omitted.
+        #[arg(short, long)]
+        output: Option<PathBuf>,
+    },
+    /// Simulate the free humanoid holding its nominal pose (zero action) and report.
+    Hold {
+        /// Simulated seconds.
+        #[arg(long, default_value_t = 5.0)]
+        seconds: f64,
+        /// Planar push (m/s, world x) at the start, to watch it topple.
+        #[arg(long, default_value_t = 0.0)]
+        push: f64,
+    },
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// Physics and environment throughput.
+    Sim {
+        /// Environments stepped in parallel for the batched row.
+        #[arg(long, default_value_t = 16)]
+        envs: usize,
+        /// Timed repeats per row (the median is reported).
+        #[arg(long, default_value_t = 7)]
+        repeats: usize,
+    },
+}
+
+fn main() {
+    let cli = Cli::parse();
+    if let Err(e) = run(cli) {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    let config = Config::load(&cli.settings.preset, cli.settings.config.as_deref())?;
+    match cli.command {
+        Command::Config => print!("{}", toml::to_string(&config)?),
+        Command::Sim(cmd) => sim(cmd, &config)?,
+        Command::Bench(BenchCommand::Sim { envs, repeats }) => {
+            let humanoid = Humanoid::new(config.sim)?;
+            println!(
+                "humanoid: {} physics steps per 30 Hz control step ({:.0} Hz physics)",
+                config.sim.substeps,
+                1.0 / config.sim.timestep()
+            );
+            println!("{:<44} {:>14}  unit", "measurement", "median");
+            for m in bench::run(&humanoid, envs.max(1), repeats.max(1)) {
+                println!("{:<44} {:>14.0}  {}/s", m.name, m.per_second, m.unit);
+            }
+        }
+    }
+    Ok(())
+}
+
+fn sim(cmd: SimCommand, config: &Config) -> Result<()> {
+    let humanoid = Humanoid::new(config.sim)?;
+    match cmd {
+        SimCommand::Info => {
+            println!("bodies {} (depth-first): {}", skeleton::NUM_BODIES, skeleton::BODY_NAMES.join(", "));
+            println!("qpos {}  qvel {}  actions {}  state {}", humanoid.nq(), humanoid.nv(), NUM_DOFS, STATE_DIM);
+            println!("mass {:.1} kg  height {:.2} m", humanoid.mass(), humanoid.height());
+            println!(
+                "physics {:.0} Hz ({} substeps per 30 Hz control step), integrator implicitfast",
+                1.0 / config.sim.timestep(),
+                config.sim.substeps
+            );
+            println!("{:<8} {:>10} {:>8} {:>8} {:>10}", "group", "armature", "kp", "kd", "torque");
+            use skeleton::JointGroup::*;
+            for group in [Leg, Toe, Trunk, Upper, Wrist] {
+                let (kp, kd) = mjcf::pd_gains(group);
+                let name = format!("{group:?}");
+                println!("{name:<8} {:>10.3} {kp:>8.1} {kd:>8.1} {:>10.0}", group.armature(), group.torque_limit());
+            }
+        }
+        SimCommand::Xml { output: None } => print!("{}", humanoid.xml()),
+        SimCommand::Xml { output: Some(path) } => {
+            flowmimic_io::write_atomic(&path, humanoid.xml().as_bytes())?;
+            eprintln!("wrote {}", path.display());
+        }
+        SimCommand::Hold { seconds, push } => {
+            let mut env = humanoid.env();
+            env.kick([push, 0.0])?;
+            let zero = vec![0f32; NUM_DOFS];
+            let steps = (seconds * flowmimic_sim::CONTROL_HZ).round() as usize;
+            println!("holding the nominal pose (zero action) for {seconds} s, push {push} m/s");
+            println!("{:>6} {:>9} {:>9} {:>9} {:>9}", "t [s]", "pelvis z", "head z", "drift", "|torque|");
+            for step in 1..=steps {
+                env.step(&zero)?;
+                let q = env.qpos();
+                if step % 15 == 0 || step == steps || env.fallen() {
+                    let torque = env.torques().iter().map(|t| t * t).sum::<f64>().sqrt();
+                    println!(
+                        "{:>6.2} {:>9.3} {:>9.3} {:>9.3} {:>9.1}",
+                        env.time(),
+                        q[2],
+                        env.head_height(),
+                        q[0].hypot(q[1]),
+                        torque
+                    );
+                }
+                if env.fallen() {
+                    println!("fell after {:.2} s (head below {} m)", env.time(), flowmimic_sim::FALL_HEAD_HEIGHT);
+                    return Ok(());
+                }
+            }
+            println!("still standing after {seconds} s");
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,98 @@
+//! Simulator throughput, measured the same way every time: medians over repeats.
+//! `flowmimic bench sim` prints these rows.
+
+use crate::{Humanoid, NUM_DOFS, VecEnv};
+use std::sync::Arc;
+use std::time::Instant;
+
+/// One measured quantity.
+#[derive(Clone, Debug)]
+pub struct Measurement {
+    pub name: String,
+    /// Median rate over the repeats, per second.
+    pub per_second: f64,
+    /// What is counted.
+    pub unit: &'static str,
+}
+
+fn median(mut xs: Vec<f64>) -> f64 {
+    xs.sort_by(f64::total_cmp);
+    xs[xs.len() / 2]
+}
+
+/// Median of `repeats` timings of `work`, which performs `count` units each call.
+fn rate(repeats: usize, count: usize, mut work: impl FnMut()) -> f64 {
+    work(); // warm-up
+    median(
+        (0..repeats)
+            .map(|_| {
+                let t = Instant::now();
+                work();
+                count as f64 / t.elapsed().as_secs_f64()
+            })
+            .collect(),
+    )
+}
+
+/// A small deterministic action sequence around the nominal pose (keeps the humanoid busy
+/// without a controller; it falls and lies on the ground, which exercises contacts).
+fn wiggle(step: usize, env: usize) -> Vec<f32> {
+    (0..NUM_DOFS).map(|i| 0.05 * ((step * 7 + i * 13 + env * 3) as f32 * 0.1).sin()).collect()
+}
+
+/// Raw MuJoCo steps, control steps for 1 and `envs` environments, and state reads.
+pub fn run(humanoid: &Arc<Humanoid>, envs: usize, repeats: usize) -> Vec<Measurement> {
+    let control_steps = 60;
+    let mut out = Vec::new();
+
+    let mut env = humanoid.env();
+    let physics_steps = control_steps * humanoid.config().substeps;
+    let reset = |env: &mut crate::Env| {
+        env.reset(&humanoid.standing_qpos(), &vec![0.0; humanoid.nv()]).expect("standing pose");
+    };
+    out.push(Measurement {
+        name: "MuJoCo mj_step, 1 env".into(),
+        per_second: rate(repeats, physics_steps, || {
+            reset(&mut env);
+            for _ in 0..physics_steps {
+                env.physics_step();
+            }
+        }),
+        unit: "physics steps",
+    });
+    let actions: Vec<Vec<f32>> = (0..control_steps).map(|s| wiggle(s, 0)).collect();
+    out.push(Measurement {
+        name: "Env::step (30 Hz), 1 env".into(),
+        per_second: rate(repeats, control_steps, || {
+            reset(&mut env);
+            for a in &actions {
+                env.step(a).expect("bench step");
+            }
+        }),
+        unit: "control steps",
+    });
+    let mut batch = VecEnv::new(humanoid, envs);
+    let batch_actions: Vec<Vec<f32>> =
+        (0..control_steps).map(|s| (0..envs).flat_map(|e| wiggle(s, e)).collect()).collect();
+    out.push(Measurement {
+        name: format!("VecEnv::step, {envs} envs on {} threads", rayon::current_num_threads()),
+        per_second: rate(repeats, control_steps * envs, || {
+            batch.envs_mut().iter_mut().for_each(&reset);
+            for a in &batch_actions {
+                batch.step(a).expect("bench step");
+            }
+        }),
+        unit: "control steps",
+    });
+    let reads = 2000;
+    out.push(Measurement {
+        name: "Env::state (165-d features)".into(),
+        per_second: rate(repeats, reads, || {
+            for _ in 0..reads {
+                std::hint::black_box(env.state());
+            }
+        }),
+        unit: "reads",
+    });
+    out
+}
