@@ -3,6 +3,7 @@
 //! This file only parses arguments and calls the stage crates.
 
 mod config;
+mod motion;
 
 use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
@@ -35,6 +36,9 @@ enum Command {
     /// The simulated humanoid: inspect the model, export its MJCF, watch it stand.
     #[command(subcommand)]
     Sim(SimCommand),
+    /// Motion clips: import BVH/DeepMimic files, generate walks, inspect clip files.
+    #[command(subcommand)]
+    Motion(motion::MotionCommand),
     /// Measure throughput and print a table of medians.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -89,6 +93,7 @@ fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Config => print!("{}", toml::to_string(&config)?),
         Command::Sim(cmd) => sim(cmd, &config)?,
+        Command::Motion(cmd) => motion::run(cmd, &Humanoid::new(config.sim)?)?,
         Command::Bench(BenchCommand::Sim { envs, repeats }) => {
             let humanoid = Humanoid::new(config.sim)?;
             println!(

@@ -8,7 +8,7 @@
 //! the root's facing direction projected on the ground (yaw only) and z up:
 //! `C_p = R_yaw^T (W_p - W_p_root)` and `C_v = R_yaw^T (W_v - W_v_root)` (paper eqs. 4-5).
 
-pub use glam::{DQuat, DVec3};
+pub use glam::{DMat3, DQuat, DVec2, DVec3};
 
 /// A quaternion from MuJoCo's `(w, x, y, z)` layout.
 pub fn quat_from_wxyz(q: [f64; 4]) -> DQuat {

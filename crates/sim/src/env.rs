@@ -197,6 +197,31 @@ impl Env {
         self.data.actuator_force()
     }
 
+    /// Height of the lowest point of each foot (ankle and toe geoms), left then right, metres.
+    /// Negative means the sole is below the ground.
+    pub fn sole_heights(&self) -> [f64; 2] {
+        self.foot_bottoms().map(|[heel, toe]| heel.min(toe))
+    }
+
+    /// Lowest point of the foot (ankle body) and of the toes, for each foot, metres.
+    pub fn foot_bottoms(&self) -> [[f64; 2]; 2] {
+        [[body::L_ANKLE, body::L_TOE], [body::R_ANKLE, body::R_TOE]]
+            .map(|parts| parts.map(|b| self.geom_bottom(self.humanoid.body_geom(b))))
+    }
+
+    /// Lowest world z of a box, sphere or capsule geom.
+    fn geom_bottom(&self, geom: usize) -> f64 {
+        let (centre, frame) = (self.data.geom_xpos()[geom], self.data.geom_xmat()[geom]);
+        let size = self.humanoid.model().geom_size()[geom];
+        // Row 2 of the geom's rotation matrix holds the world z of its local axes.
+        let extent = match self.humanoid.model().geom_type()[geom] {
+            MjtGeomBase::mjGEOM_BOX => (0..3).map(|k| frame[6 + k].abs() * size[k]).sum::<f64>(),
+            MjtGeomBase::mjGEOM_CAPSULE => size[0] + frame[8].abs() * size[1],
+            _ => size[0],
+        };
+        centre[2] - extent
+    }
+
     /// Height of the head body, metres.
     pub fn head_height(&self) -> f64 {
         self.data.xpos()[body::HEAD + 1][2]

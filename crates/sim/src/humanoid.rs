@@ -225,6 +225,11 @@ impl Humanoid {
             .fold(f64::MIN, f64::max)
     }
 
+    /// The geom of body `b` (each body has exactly one).
+    pub(crate) fn body_geom(&self, b: usize) -> usize {
+        self.model.body_geomadr()[b + 1] as usize
+    }
+
     pub(crate) fn model(&self) -> &Arc<MjModel> {
         &self.model
     }

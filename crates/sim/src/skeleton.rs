@@ -78,12 +78,28 @@ pub fn body_index(name: &str) -> Option<usize> {
 /// Well-known bodies.
 pub mod body {
     pub const PELVIS: usize = 0;
+    pub const L_HIP: usize = 1;
+    pub const L_KNEE: usize = 2;
     pub const L_ANKLE: usize = 3;
     pub const L_TOE: usize = 4;
+    pub const R_HIP: usize = 5;
+    pub const R_KNEE: usize = 6;
     pub const R_ANKLE: usize = 7;
     pub const R_TOE: usize = 8;
+    pub const TORSO: usize = 9;
+    pub const SPINE: usize = 10;
+    pub const CHEST: usize = 11;
+    pub const NECK: usize = 12;
     pub const HEAD: usize = 13;
+    pub const L_THORAX: usize = 14;
+    pub const L_SHOULDER: usize = 15;
+    pub const L_ELBOW: usize = 16;
+    pub const L_WRIST: usize = 17;
     pub const L_HAND: usize = 18;
+    pub const R_THORAX: usize = 19;
+    pub const R_SHOULDER: usize = 20;
+    pub const R_ELBOW: usize = 21;
+    pub const R_WRIST: usize = 22;
     pub const R_HAND: usize = 23;
 }
 

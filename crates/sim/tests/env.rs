@@ -318,3 +318,21 @@ fn pd_gains_follow_the_paper_formula() {
     // The XML carries the same numbers MuJoCo will use.
     assert!(humanoid().xml().contains(&format!("joint=\"L_Knee_y\" kp=\"{kp:.4}\" kv=\"{kd:.4}\"")));
 }
+
+#[test]
+fn soles_touch_the_ground_when_standing_and_lift_with_the_body() {
+    let h = humanoid();
+    let mut env = h.env();
+    let soles = env.sole_heights();
+    // The nominal pose is built with the soles exactly at z = 0.
+    assert!(soles.iter().all(|z| z.abs() < 1e-3), "{soles:?}");
+    let mut q = h.standing_qpos();
+    q[2] += 0.25;
+    env.reset(&q, &vec![0.0; h.nv()]).unwrap();
+    assert!(env.sole_heights().iter().all(|z| (z - 0.25).abs() < 1e-3));
+    // Tip the body 90 degrees forward: the feet's lowest points are now their heels' backs.
+    q[3..7].copy_from_slice(&quat_to_wxyz(DQuat::from_rotation_y(std::f64::consts::FRAC_PI_2)));
+    env.reset(&q, &vec![0.0; h.nv()]).unwrap();
+    let [l, r] = env.sole_heights();
+    assert!((l - r).abs() < 1e-9 && l > 0.9, "{l} {r}");
+}

@@ -1,0 +1,277 @@
+//! Landmarks to humanoid poses.
+//!
+//! 1. Resample to 30 Hz (linear interpolation of positions).
+//! 2. Scale the source so its hip-to-ankle length is the humanoid's (0.76 m).
+//! 3. Orient each driven body from two directions measured on the landmarks, mapped onto the
+//!    same directions of the humanoid's T-pose: `R = B(d, s) B(d0, s0)^T`, where `B` builds an
+//!    orthonormal basis from a primary direction `d` and a secondary `s`:
+//!
+//!    | body        | primary `d` (T-pose `d0`)   | secondary `s` (T-pose `s0`)                |
+//!    |-------------|-----------------------------|--------------------------------------------|
+//!    | Pelvis      | L_Hip - R_Hip (+y)          | Chest - hip centre (+z)                    |
+//!    | Chest       | L_Shoulder - R_Shoulder (+y)| Neck - Chest (+z)                          |
+//!    | Head        | Head - Neck (+z)            | shoulder line (+y)                         |
+//!    | thigh, shin | Knee - Hip, Ankle - Knee (-z)| knee axis: thigh x shin, + foot lateral (+y) |
+//!    | foot        | Toe - Ankle (stance slope)  | knee axis (+y)                             |
+//!    | upper arm   | Elbow - Shoulder (+-y)      | forearm, else chest forward (+x)           |
+//!    | forearm     | the upper arm swung onto Wrist - Elbow                                   |
+//!
+//!    The foot's T-pose direction is tilted by the source's own ankle-to-toe slope measured
+//!    in stance (the slowest 30% of frames), when the sole is flat: skeletons place those
+//!    joints differently, and the humanoid's foot must be flat when the source's is.
+//!    Torso and Spine share the pelvis-to-chest rotation in thirds, Neck and Head the
+//!    chest-to-head rotation in halves; toes stay level when the heel rises; clavicles,
+//!    wrists and hands keep their nominal (zero) angles: the sources do not measure them.
+//! 4. Local rotations become the three hinge angles (intrinsic x-y-z Euler, as MuJoCo chains
+//!    the hinges), clamped to the joint ranges (the count is reported).
+//! 5. The pelvis sits above the hip centre as in the humanoid; the clip is moved to start at
+//!    the origin facing +x, and each frame is lowered or raised by the lowest sole point's
+//!    height averaged over 0.2 s, so the stance foot stays on the ground although the
+//!    source's legs and feet differ from the humanoid's.
+
+use crate::MotionError;
+use crate::clip::Clip;
+use crate::landmarks::{Landmark as L, LandmarkClip, Pose};
+use flowmimic_geom::{DMat3, DQuat, DVec3, euler_xyz, heading, yaw_quat};
+use flowmimic_sim::skeleton::{BODY_PARENTS, BodySpec, NUM_BODIES, bodies, body as b};
+use flowmimic_sim::{CONTROL_HZ, Humanoid, NUM_DOFS};
+
+/// Bodies whose joints keep their nominal angles: the sources do not measure them reliably.
+const UNMEASURED: [usize; 6] = [b::L_THORAX, b::R_THORAX, b::L_WRIST, b::R_WRIST, b::L_HAND, b::R_HAND];
+
+/// The humanoid's hip-to-ankle length, metres.
+fn humanoid_leg(specs: &[BodySpec]) -> f64 {
+    specs[2].offset.iter().map(|x| x * x).sum::<f64>().sqrt()
+        + specs[3].offset.iter().map(|x| x * x).sum::<f64>().sqrt()
+}
+
+/// Resamples positions to `CONTROL_HZ` by linear interpolation.
+pub fn resample(clip: &LandmarkClip) -> Vec<Pose> {
+    let n = clip.frames.len();
+    let duration = (n - 1) as f64 / clip.fps;
+    // Files round their frame time (".0083333", "0.033332"): a last frame within 1% of a
+    // period of the end still counts.
+    let count = (duration * CONTROL_HZ + 0.01).floor() as usize + 1;
+    (0..count)
+        .map(|k| {
+            let f = (k as f64 / CONTROL_HZ * clip.fps).min((n - 1) as f64);
+            let (i, w) = (f.floor() as usize, f.fract());
+            let j = (i + 1).min(n - 1);
+            std::array::from_fn(|l| clip.frames[i][l].lerp(clip.frames[j][l], w))
+        })
+        .collect()
+}
+
+fn basis(primary: DVec3, secondary: DVec3) -> Option<DMat3> {
+    let x = primary.normalize_or_zero();
+    let s = secondary - x * secondary.dot(x);
+    if x == DVec3::ZERO || s.length() < 1e-6 {
+        return None;
+    }
+    let y = s.normalize();
+    Some(DMat3::from_cols(x, y, x.cross(y)))
+}
+
+/// The rotation taking `(d0, s0)` onto `(d, s)`; `fallback` when `s` is parallel to `d`.
+fn orient(d: DVec3, s: DVec3, d0: DVec3, s0: DVec3, fallback: DVec3) -> DQuat {
+    let b = basis(d, s).or_else(|| basis(d, fallback)).unwrap_or(DMat3::IDENTITY);
+    let b0 = basis(d0, s0).expect("reference directions are not parallel");
+    DQuat::from_mat3(&(b * b0.transpose())).normalize()
+}
+
+/// Median of a list (the lower middle for even lengths).
+pub(crate) fn median(mut xs: Vec<f64>) -> f64 {
+    xs.sort_by(f64::total_cmp);
+    xs[(xs.len() - 1) / 2]
+}
+
+/// Slope of ankle-to-toe below horizontal, radians, in the slowest 30% of frames.
+fn stance_foot_slope(frames: &[Pose], ankle: L, toe: L) -> f64 {
+    if frames.len() < 3 {
+        return 0.0;
+    }
+    let mut by_speed: Vec<(f64, f64)> = (1..frames.len())
+        .map(|t| {
+            let speed = (frames[t][ankle] - frames[t - 1][ankle]).length();
+            let d = frames[t][toe] - frames[t][ankle];
+            (speed, (-d.z).atan2(d.truncate().length()))
+        })
+        .collect();
+    by_speed.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let keep = (by_speed.len() * 3 / 10).max(1);
+    median(by_speed[..keep].iter().map(|x| x.1).collect())
+}
+
+/// Global body rotations of one pose.
+fn body_rotations(p: &Pose, foot_slope: [f64; 2]) -> [DQuat; NUM_BODIES] {
+    let (x, y, z) = (DVec3::X, DVec3::Y, DVec3::Z);
+    let hip_centre = 0.5 * (p[L::LHip] + p[L::RHip]);
+    let pelvis = orient(p[L::LHip] - p[L::RHip], p[L::Chest] - hip_centre, y, z, z);
+    let lateral = p[L::LShoulder] - p[L::RShoulder];
+    let chest = orient(lateral, p[L::Neck] - p[L::Chest], y, z, pelvis * z);
+    let head = orient(p[L::Head] - p[L::Neck], lateral, z, y, chest * y);
+    let chest_forward = chest * x;
+    let mut r = [DQuat::IDENTITY; NUM_BODIES];
+    r[b::PELVIS] = pelvis;
+    let spine = pelvis.conjugate() * chest;
+    r[b::TORSO] = pelvis * DQuat::IDENTITY.slerp(spine, 1.0 / 3.0);
+    r[b::SPINE] = pelvis * DQuat::IDENTITY.slerp(spine, 2.0 / 3.0);
+    r[b::CHEST] = chest;
+    r[b::NECK] = chest * DQuat::IDENTITY.slerp(chest.conjugate() * head, 0.5);
+    r[b::HEAD] = head;
+    let legs = [
+        ([b::L_HIP, b::L_KNEE, b::L_ANKLE, b::L_TOE], [L::LHip, L::LKnee, L::LAnkle, L::LToe], foot_slope[0]),
+        ([b::R_HIP, b::R_KNEE, b::R_ANKLE, b::R_TOE], [L::RHip, L::RKnee, L::RAnkle, L::RToe], foot_slope[1]),
+    ];
+    for ([thigh, shin, foot, toes], [hip, knee, ankle, toe], slope) in legs {
+        let (thigh_dir, shin_dir, foot_dir) = (p[knee] - p[hip], p[ankle] - p[knee], p[toe] - p[ankle]);
+        // The knee's hinge axis orients thigh, shin and foot about their long axes. It is the
+        // normal of the thigh-shin plane when the knee bends; for a straight leg the foot's
+        // lateral axis takes over (the blend is continuous).
+        let foot_lateral = z.cross(foot_dir).normalize_or_zero();
+        let axis = thigh_dir.normalize_or_zero().cross(shin_dir.normalize_or_zero()) + 0.15 * foot_lateral;
+        r[thigh] = orient(thigh_dir, axis, -z, y, pelvis * y);
+        r[shin] = orient(shin_dir, axis, -z, y, r[thigh] * y);
+        let flat = DVec3::new(slope.cos(), 0.0, -slope.sin());
+        r[foot] = orient(foot_dir, axis, flat, y, r[shin] * y);
+        // Toes stay level when the heel rises (sources do not measure the toe joint, and a
+        // rigid foot would drive its toes into the ground at push-off).
+        let forward = r[foot] * x;
+        let level = DVec3::new(forward.x, forward.y, forward.z.max(0.0)).normalize_or_zero();
+        r[toes] = if level == DVec3::ZERO { r[foot] } else { DQuat::from_rotation_arc(forward, level) * r[foot] };
+    }
+    let arms = [
+        ([b::L_THORAX, b::L_SHOULDER, b::L_ELBOW, b::L_WRIST, b::L_HAND], [L::LShoulder, L::LElbow, L::LWrist], y),
+        ([b::R_THORAX, b::R_SHOULDER, b::R_ELBOW, b::R_WRIST, b::R_HAND], [L::RShoulder, L::RElbow, L::RWrist], -y),
+    ];
+    for ([thorax, upper_arm, forearm, wrist_b, hand], [shoulder, elbow, wrist], outward) in arms {
+        r[thorax] = chest;
+        let upper = p[elbow] - p[shoulder];
+        let fore = p[wrist] - p[elbow];
+        r[upper_arm] = orient(upper, fore, outward, x, chest_forward);
+        // The forearm is the upper arm bent onto its own direction: a hinge-like elbow.
+        let bend = DQuat::from_rotation_arc(upper.normalize_or_zero(), fore.normalize_or_zero());
+        r[forearm] = if upper.length() > 1e-9 && fore.length() > 1e-9 { bend * r[upper_arm] } else { r[upper_arm] };
+        r[wrist_b] = r[forearm];
+        r[hand] = r[forearm];
+    }
+    r
+}
+
+/// How retargeting went.
+#[derive(Clone, Debug, Default)]
+pub struct RetargetReport {
+    /// Source hip-to-ankle length (metres, after unit conversion) divided into the humanoid's.
+    pub scale: f64,
+    /// Hinge values that had to be clamped to the joint range, as a fraction of all.
+    pub clamped: f64,
+    /// Median over frames of the height correction applied to the root, metres.
+    pub ground_offset: f64,
+}
+
+/// Retargets landmarks to the humanoid. `cyclic` marks a clip whose last frame repeats its
+/// first one step of the loop on.
+pub fn retarget(
+    humanoid: &std::sync::Arc<Humanoid>,
+    source: &LandmarkClip,
+    name: &str,
+    origin: &str,
+    cyclic: bool,
+) -> Result<(Clip, RetargetReport), MotionError> {
+    if source.frames.len() < 2 || !(source.fps.is_finite() && source.fps > 0.0) {
+        return Err(MotionError::Invalid(format!("{name}: a clip needs at least 2 frames and a positive rate")));
+    }
+    if source.frames.iter().flatten().any(|v| !v.is_finite()) {
+        return Err(MotionError::Invalid(format!("{name}: non-finite landmark position")));
+    }
+    let specs = bodies();
+    let mut frames = resample(source);
+    let src_leg = median(
+        frames
+            .iter()
+            .map(|p| {
+                0.5 * (p[L::LHip].distance(p[L::LKnee])
+                    + p[L::LKnee].distance(p[L::LAnkle])
+                    + p[L::RHip].distance(p[L::RKnee])
+                    + p[L::RKnee].distance(p[L::RAnkle]))
+            })
+            .collect(),
+    );
+    let scale = humanoid_leg(&specs) / src_leg;
+    if !(0.2..5.0).contains(&scale) {
+        return Err(MotionError::Invalid(format!("{name}: leg length {src_leg:.3} m is not a human's (wrong units?)")));
+    }
+    for p in &mut frames {
+        for v in p.iter_mut() {
+            *v *= scale;
+        }
+    }
+    let slopes = [stance_foot_slope(&frames, L::LAnkle, L::LToe), stance_foot_slope(&frames, L::RAnkle, L::RToe)];
+    let map = humanoid.actions();
+    let hip_height = -specs[1].offset[2];
+    let (mut clamped, mut qpos) = (0usize, Vec::with_capacity(frames.len()));
+    for p in &frames {
+        let rot = body_rotations(p, slopes);
+        let mut hinges = map.q_bar;
+        for body in (1..NUM_BODIES).filter(|body| !UNMEASURED.contains(body)) {
+            let parent = BODY_PARENTS[body].expect("non-root body");
+            let e = euler_xyz(rot[parent].conjugate() * rot[body]);
+            for k in 0..3 {
+                let i = 3 * (body - 1) + k;
+                hinges[i] = e[k].clamp(map.lower[i], map.upper[i]);
+                clamped += usize::from(hinges[i] != e[k]);
+            }
+        }
+        let root = 0.5 * (p[L::LHip] + p[L::RHip]) + rot[0] * DVec3::new(0.0, 0.0, hip_height);
+        let q = rot[0];
+        qpos.push(humanoid.qpos(root.to_array(), [q.w, q.x, q.y, q.z], &hinges));
+    }
+    // Start at the origin facing +x.
+    let (start, yaw0) = (DVec3::new(qpos[0][0], qpos[0][1], 0.0), heading(quat_of(&qpos[0])));
+    let turn = yaw_quat(-yaw0);
+    for q in &mut qpos {
+        let p = turn * (DVec3::new(q[0], q[1], q[2]) - start);
+        let r = turn * quat_of(q);
+        q[..7].copy_from_slice(&[p.x, p.y, p.z, r.w, r.x, r.y, r.z]);
+    }
+    let lowest = lowest_soles(humanoid, &qpos);
+    let ground_offset = median(lowest.clone());
+    for (q, z) in qpos.iter_mut().zip(smooth(&lowest, GROUNDING_WINDOW)) {
+        q[2] -= z;
+    }
+    let clip = Clip::from_qpos(humanoid, name, origin, cyclic, qpos)?;
+    let report = RetargetReport { scale, clamped: clamped as f64 / (frames.len() * NUM_DOFS) as f64, ground_offset };
+    Ok((clip, report))
+}
+
+pub(crate) fn quat_of(q: &[f64]) -> DQuat {
+    flowmimic_geom::quat_from_wxyz([q[3], q[4], q[5], q[6]])
+}
+
+/// Frames (at 30 Hz) over which the height correction is averaged: 0.2 s keeps steps, bounces
+/// and flight phases and removes the slow drift between the source's feet and the humanoid's.
+const GROUNDING_WINDOW: usize = 7;
+
+/// The lowest sole point of each frame.
+fn lowest_soles(humanoid: &std::sync::Arc<Humanoid>, qpos: &[Vec<f64>]) -> Vec<f64> {
+    let mut env = humanoid.env();
+    let zero = vec![0.0; humanoid.nv()];
+    qpos.iter()
+        .map(|q| {
+            env.reset(q, &zero).expect("retargeted pose is finite");
+            let [l, r] = env.sole_heights();
+            l.min(r)
+        })
+        .collect()
+}
+
+/// Centred moving average over `window` frames (shrinking at the ends).
+fn smooth(xs: &[f64], window: usize) -> Vec<f64> {
+    let half = window / 2;
+    (0..xs.len())
+        .map(|i| {
+            let span = &xs[i.saturating_sub(half)..(i + half + 1).min(xs.len())];
+            span.iter().sum::<f64>() / span.len() as f64
+        })
+        .collect()
+}
