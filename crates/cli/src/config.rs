@@ -5,6 +5,7 @@
 
 use anyhow::{Context, Result, bail};
 use flowmimic_sim::SimConfig;
+use flowmimic_track::TrackConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -13,6 +14,8 @@ use std::path::Path;
 #[serde(deny_unknown_fields)]
 pub struct Config {
     pub sim: SimConfig,
+    #[serde(default)]
+    pub track: TrackConfig,
 }
 
 /// The built-in presets, embedded from `configs/`.

@@ -4,6 +4,7 @@
 
 mod config;
 mod motion;
+mod track;
 
 use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
@@ -39,6 +40,9 @@ enum Command {
     /// Motion clips: import BVH/DeepMimic files, generate walks, inspect clip files.
     #[command(subcommand)]
     Motion(motion::MotionCommand),
+    /// PPO tracking experts: train on a clip, evaluate tracking quality.
+    #[command(subcommand)]
+    Track(track::TrackCommand),
     /// Measure throughput and print a table of medians.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -94,6 +98,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Config => print!("{}", toml::to_string(&config)?),
         Command::Sim(cmd) => sim(cmd, &config)?,
         Command::Motion(cmd) => motion::run(cmd, &Humanoid::new(config.sim)?)?,
+        Command::Track(cmd) => track::run(cmd, &Humanoid::new(config.sim)?, config.track.clone())?,
         Command::Bench(BenchCommand::Sim { envs, repeats }) => {
             let humanoid = Humanoid::new(config.sim)?;
             println!(

@@ -1,0 +1,138 @@
+//! `flowmimic track ...`: train and evaluate PPO tracking experts.
+
+use anyhow::{Context, Result};
+use clap::Subcommand;
+use flowmimic_motion::{Clip, GaitParams};
+use flowmimic_sim::Humanoid;
+use flowmimic_track::train::{Checkpoint, IterationLog};
+use flowmimic_track::{TrackConfig, Trainer, evaluate};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+#[derive(Subcommand)]
+pub enum TrackCommand {
+    /// Train a PPO expert that tracks a clip (a generated 10 s straight walk by default).
+    /// Writes <out>/policy.safetensors (checkpointed atomically), log.csv and config.json.
+    Train {
+        /// Clip file to track (`flowmimic motion import|generate` writes them).
+        #[arg(long)]
+        clip: Option<PathBuf>,
+        /// Run directory; default runs/track/<clip name>.
+        #[arg(short, long)]
+        out: Option<PathBuf>,
+        /// Iterations (overrides the preset's track.iterations).
+        #[arg(long)]
+        iterations: Option<usize>,
+        /// Continue from <out>/policy.safetensors with its optimiser state and counters.
+        #[arg(long)]
+        resume: bool,
+    },
+    /// Tracking metrics of a trained policy on its clip.
+    Eval {
+        /// The policy file (policy.safetensors of a run).
+        policy: PathBuf,
+        /// The clip it tracks (default: the generated walk it was trained on).
+        #[arg(long)]
+        clip: Option<PathBuf>,
+        #[arg(long, default_value_t = 100)]
+        episodes: usize,
+        /// Apply the survival protocol's kicks (0-0.5 m/s every second).
+        #[arg(long)]
+        kicks: bool,
+    },
+}
+
+fn load_clip(humanoid: &Arc<Humanoid>, clip: Option<&Path>) -> Result<Clip> {
+    Ok(match clip {
+        Some(path) => Clip::load(humanoid, path)?,
+        None => {
+            flowmimic_motion::generate(humanoid, "walk_straight", &GaitParams { duration: 10.0, ..Default::default() })?
+                .0
+        }
+    })
+}
+
+pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) -> Result<()> {
+    match cmd {
+        TrackCommand::Train { clip, out, iterations, resume } => {
+            let clip = load_clip(humanoid, clip.as_deref())?;
+            let out = out.unwrap_or_else(|| PathBuf::from("runs/track").join(&clip.name));
+            if let Some(n) = iterations {
+                cfg.iterations = n;
+            }
+            let policy_path = out.join("policy.safetensors");
+            let log_path = out.join("log.csv");
+            let mut rows: Vec<String> = Vec::new();
+            let mut trainer = if resume {
+                let t = Trainer::resume(humanoid, clip, cfg.clone(), &policy_path)?;
+                let text = flowmimic_io::read_to_string(&log_path).unwrap_or_default();
+                // Keep the log up to the checkpoint's iteration.
+                rows = text
+                    .lines()
+                    .skip(1)
+                    .filter(|l| {
+                        l.split(',').next().and_then(|i| i.parse::<usize>().ok()).is_some_and(|i| i <= t.iteration)
+                    })
+                    .map(String::from)
+                    .collect();
+                eprintln!("resumed {} at iteration {} ({} env steps)", policy_path.display(), t.iteration, t.env_steps);
+                t
+            } else {
+                if policy_path.exists() {
+                    anyhow::bail!(
+                        "{} exists: pass --resume to continue it, or choose another --out",
+                        policy_path.display()
+                    );
+                }
+                Trainer::new(humanoid, clip, cfg.clone())?
+            };
+            flowmimic_io::write_atomic(&out.join("config.json"), serde_json::to_string_pretty(&cfg)?.as_bytes())?;
+            eprintln!(
+                "tracking '{}' ({} frames) with {} envs x {} steps per iteration, policy {} parameters",
+                trainer.reference.clip.name,
+                trainer.reference.len(),
+                cfg.envs,
+                cfg.horizon,
+                trainer.policy.num_params()
+            );
+            let started = std::time::Instant::now();
+            while trainer.iteration < cfg.iterations {
+                let log: IterationLog = trainer.iterate().context("training stopped; the last checkpoint is intact")?;
+                rows.push(log.csv_row());
+                let last = trainer.iteration == cfg.iterations;
+                if trainer.iteration % cfg.checkpoint_every.max(1) == 0 || last {
+                    trainer.save(&policy_path)?;
+                    let csv = std::iter::once(IterationLog::CSV_HEADER.to_string())
+                        .chain(rows.iter().cloned())
+                        .collect::<Vec<_>>()
+                        .join("\n");
+                    flowmimic_io::write_atomic(&log_path, format!("{csv}\n").as_bytes())?;
+                }
+                eprintln!(
+                    "[{:>5}/{}] {:>9} steps  reward {:.3}  episode {:>5.1}  fails {:>3}/{:<3}  body err {:.3} m  kl {:.4}  lr {:.1e}  {:>5.0} steps/s  {:.0} s",
+                    log.iteration,
+                    cfg.iterations,
+                    log.env_steps,
+                    log.mean_reward,
+                    log.episode_length,
+                    log.failures,
+                    log.episodes,
+                    log.body_pos_error,
+                    log.kl,
+                    log.learning_rate,
+                    log.steps_per_second,
+                    started.elapsed().as_secs_f64()
+                );
+            }
+            eprintln!("wrote {} and {}", policy_path.display(), log_path.display());
+        }
+        TrackCommand::Eval { policy, clip, episodes, kicks } => {
+            let ck = Checkpoint::read(&policy)?;
+            let (cfg, policy_net) = (ck.config()?, ck.policy()?);
+            let clip = load_clip(humanoid, clip.as_deref())?;
+            let report = evaluate(humanoid, &policy_net, &clip, &cfg, episodes.max(1), kicks, 12345)?;
+            println!("{}", serde_json::to_string_pretty(&report)?);
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,258 @@
+//! A multi-layer perceptron with ELU activations, hand-written forward and backward passes on
+//! `matrixmultiply`'s SGEMM, and Adam. Small and explicit, like CleanRL's networks: PPO needs
+//! nothing more, and on a CPU this is faster than a general tensor library.
+
+use rand::Rng;
+use rand_distr::{Distribution, Normal};
+
+/// One dense layer, weights row-major `[out][in]`.
+#[derive(Clone, Debug)]
+pub struct Linear {
+    pub inputs: usize,
+    pub outputs: usize,
+    pub weight: Vec<f32>,
+    pub bias: Vec<f32>,
+}
+
+/// `y[n][o] = x[n][i] * w[o][i]^T + b[o]` and friends, row-major.
+fn gemm(m: usize, k: usize, n: usize, a: (&[f32], isize, isize), b: (&[f32], isize, isize), c: &mut [f32], beta: f32) {
+    debug_assert!(c.len() >= m * n);
+    // SAFETY: the strides describe sub-matrices inside the given slices (checked by callers'
+    // shapes); c is m x n row-major.
+    unsafe {
+        matrixmultiply::sgemm(
+            m,
+            k,
+            n,
+            1.0,
+            a.0.as_ptr(),
+            a.1,
+            a.2,
+            b.0.as_ptr(),
+            b.1,
+            b.2,
+            beta,
+            c.as_mut_ptr(),
+            n as isize,
+            1,
+        );
+    }
+}
+
+impl Linear {
+    fn new(inputs: usize, outputs: usize, gain: f32, rng: &mut impl Rng) -> Self {
+        // Scaled normal init (fan-in), the same spirit as orthogonal init with a gain.
+        let normal = Normal::new(0.0, gain / (inputs as f32).sqrt()).expect("valid std");
+        Self {
+            inputs,
+            outputs,
+            weight: (0..inputs * outputs).map(|_| normal.sample(rng)).collect(),
+            bias: vec![0.0; outputs],
+        }
+    }
+
+    fn forward(&self, x: &[f32], n: usize, y: &mut Vec<f32>) {
+        y.clear();
+        y.extend((0..n).flat_map(|_| self.bias.iter().copied()));
+        let (i, o) = (self.inputs as isize, self.outputs);
+        gemm(n, self.inputs, o, (x, i, 1), (&self.weight, 1, i), y, 1.0);
+    }
+}
+
+/// An MLP: hidden layers with ELU, a linear output layer.
+#[derive(Clone, Debug)]
+pub struct Mlp {
+    pub layers: Vec<Linear>,
+}
+
+/// Activations kept by a forward pass for the backward pass.
+#[derive(Default)]
+pub struct Tape {
+    /// Input to each layer (the batch input first).
+    inputs: Vec<Vec<f32>>,
+    /// Output of the network.
+    pub output: Vec<f32>,
+    n: usize,
+}
+
+fn elu(x: f32) -> f32 {
+    if x > 0.0 { x } else { x.exp_m1() }
+}
+
+impl Mlp {
+    /// `sizes` = [inputs, hidden..., outputs]; `output_gain` scales the last layer's init
+    /// (small for a policy mean, so actions start near the reference).
+    pub fn new(sizes: &[usize], output_gain: f32, rng: &mut impl Rng) -> Self {
+        let last = sizes.len() - 2;
+        let layers = sizes
+            .windows(2)
+            .enumerate()
+            .map(|(l, w)| Linear::new(w[0], w[1], if l == last { output_gain } else { 2f32.sqrt() }, rng))
+            .collect();
+        Self { layers }
+    }
+
+    pub fn inputs(&self) -> usize {
+        self.layers[0].inputs
+    }
+
+    pub fn outputs(&self) -> usize {
+        self.layers.last().expect("layers").outputs
+    }
+
+    pub fn num_params(&self) -> usize {
+        self.layers.iter().map(|l| l.weight.len() + l.bias.len()).sum()
+    }
+
+    /// Forward pass over `n` rows, keeping what backward needs.
+    pub fn forward(&self, x: &[f32], n: usize) -> Tape {
+        assert_eq!(x.len(), n * self.inputs(), "input has the wrong width");
+        let mut tape = Tape { inputs: Vec::with_capacity(self.layers.len()), output: Vec::new(), n };
+        let mut current = x.to_vec();
+        for (l, layer) in self.layers.iter().enumerate() {
+            let mut y = Vec::new();
+            layer.forward(&current, n, &mut y);
+            if l + 1 < self.layers.len() {
+                y.iter_mut().for_each(|v| *v = elu(*v));
+            }
+            tape.inputs.push(std::mem::replace(&mut current, y));
+        }
+        tape.output = current;
+        tape
+    }
+
+    /// Forward pass without keeping activations.
+    pub fn predict(&self, x: &[f32], n: usize) -> Vec<f32> {
+        self.forward(x, n).output
+    }
+
+    /// Accumulates parameter gradients (same layout as [`Mlp::params`]) for `d loss / d output`.
+    pub fn backward(&self, tape: &Tape, grad_output: &[f32], grads: &mut [f32]) {
+        let n = tape.n;
+        let mut grad = grad_output.to_vec();
+        let mut offset = self.num_params();
+        for l in (0..self.layers.len()).rev() {
+            let layer = &self.layers[l];
+            let (i, o) = (layer.inputs, layer.outputs);
+            offset -= layer.weight.len() + layer.bias.len();
+            let x = &tape.inputs[l];
+            let (gw, gb) = grads[offset..offset + i * o + o].split_at_mut(i * o);
+            // dW += dY^T X ; db += column sums of dY.
+            gemm(o, n, i, (&grad, 1, o as isize), (x, i as isize, 1), gw, 1.0);
+            for row in grad.chunks_exact(o) {
+                gb.iter_mut().zip(row).for_each(|(b, g)| *b += g);
+            }
+            if l == 0 {
+                break;
+            }
+            // dX = dY W, then through the ELU that produced X (x > 0: 1, else elu(x) + 1).
+            let mut gx = vec![0.0; n * i];
+            gemm(n, o, i, (&grad, o as isize, 1), (&layer.weight, i as isize, 1), &mut gx, 0.0);
+            for (g, &y) in gx.iter_mut().zip(x) {
+                if y <= 0.0 {
+                    *g *= y + 1.0;
+                }
+            }
+            grad = gx;
+        }
+    }
+
+    /// All parameters, layer by layer: weights then bias.
+    pub fn params(&self) -> Vec<f32> {
+        self.layers.iter().flat_map(|l| l.weight.iter().chain(&l.bias).copied()).collect()
+    }
+
+    pub fn set_params(&mut self, p: &[f32]) {
+        assert_eq!(p.len(), self.num_params());
+        let mut at = 0;
+        for l in &mut self.layers {
+            let (w, b) = (l.weight.len(), l.bias.len());
+            l.weight.copy_from_slice(&p[at..at + w]);
+            l.bias.copy_from_slice(&p[at + w..at + w + b]);
+            at += w + b;
+        }
+    }
+}
+
+/// Adam over a flat parameter vector.
+#[derive(Clone, Debug)]
+pub struct Adam {
+    pub m: Vec<f32>,
+    pub v: Vec<f32>,
+    pub t: u64,
+}
+
+impl Adam {
+    pub fn new(n: usize) -> Self {
+        Self { m: vec![0.0; n], v: vec![0.0; n], t: 0 }
+    }
+
+    pub fn step(&mut self, params: &mut [f32], grads: &[f32], lr: f32) {
+        let (b1, b2, eps) = (0.9f32, 0.999f32, 1e-8f32);
+        self.t += 1;
+        let c1 = 1.0 - b1.powi(self.t as i32);
+        let c2 = 1.0 - b2.powi(self.t as i32);
+        for ((p, g), (m, v)) in params.iter_mut().zip(grads).zip(self.m.iter_mut().zip(self.v.iter_mut())) {
+            *m = b1 * *m + (1.0 - b1) * g;
+            *v = b2 * *v + (1.0 - b2) * g * g;
+            *p -= lr * (*m / c1) / ((*v / c2).sqrt() + eps);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    #[test]
+    fn backward_matches_finite_differences() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(1);
+        let net = Mlp::new(&[5, 7, 6, 3], 1.0, &mut rng);
+        let n = 4;
+        let x: Vec<f32> = (0..n * 5).map(|i| ((i as f32) * 0.37).sin()).collect();
+        let target: Vec<f32> = (0..n * 3).map(|i| ((i as f32) * 0.11).cos()).collect();
+        let loss = |net: &Mlp| -> f64 {
+            net.predict(&x, n).iter().zip(&target).map(|(y, t)| 0.5 * ((y - t) as f64).powi(2)).sum()
+        };
+        let tape = net.forward(&x, n);
+        let grad_out: Vec<f32> = tape.output.iter().zip(&target).map(|(y, t)| y - t).collect();
+        let mut grads = vec![0.0; net.num_params()];
+        net.backward(&tape, &grad_out, &mut grads);
+        let base = net.params();
+        let eps = 1e-3;
+        for k in (0..base.len()).step_by(7) {
+            let mut p = base.clone();
+            p[k] += eps;
+            let mut plus = net.clone();
+            plus.set_params(&p);
+            p[k] -= 2.0 * eps;
+            let mut minus = net.clone();
+            minus.set_params(&p);
+            let fd = (loss(&plus) - loss(&minus)) / (2.0 * eps as f64);
+            assert!((fd - grads[k] as f64).abs() < 2e-3 * (1.0 + fd.abs()), "param {k}: fd {fd} vs {}", grads[k]);
+        }
+    }
+
+    #[test]
+    fn adam_fits_a_linear_map() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(2);
+        let mut net = Mlp::new(&[3, 16, 2], 1.0, &mut rng);
+        let mut opt = Adam::new(net.num_params());
+        let n = 64;
+        let x: Vec<f32> = (0..n * 3).map(|i| ((i as f32) * 0.7).sin()).collect();
+        let y: Vec<f32> = x.chunks(3).flat_map(|r| [r[0] - 2.0 * r[1], 0.5 * r[2] + 1.0]).collect();
+        let mse = |net: &Mlp| net.predict(&x, n).iter().zip(&y).map(|(a, b)| (a - b).powi(2)).sum::<f32>() / n as f32;
+        let first = mse(&net);
+        for _ in 0..500 {
+            let tape = net.forward(&x, n);
+            let g: Vec<f32> = tape.output.iter().zip(&y).map(|(a, b)| 2.0 * (a - b) / n as f32).collect();
+            let mut grads = vec![0.0; net.num_params()];
+            net.backward(&tape, &g, &mut grads);
+            let mut p = net.params();
+            opt.step(&mut p, &grads, 3e-3);
+            net.set_params(&p);
+        }
+        assert!(mse(&net) < 0.01 * first, "mse {} from {first}", mse(&net));
+    }
+}

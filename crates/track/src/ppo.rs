@@ -1,0 +1,335 @@
+//! PPO as rsl_rl (BeyondMimic's trainer) runs it: Gaussian policy with a learned
+//! state-independent log-std, clipped surrogate, clipped value loss, entropy bonus, GAE,
+//! advantage normalisation, global gradient-norm clipping and an adaptive-KL learning rate.
+//! Gradients of the losses with respect to the network outputs are written out analytically.
+
+use crate::TrackConfig;
+use crate::mlp::{Adam, Mlp};
+use rand::Rng;
+use rand::seq::SliceRandom;
+use rand_distr::{Distribution, StandardNormal};
+
+/// Running mean and variance of observations (merged batch by batch).
+#[derive(Clone, Debug)]
+pub struct Normalizer {
+    pub mean: Vec<f64>,
+    pub var: Vec<f64>,
+    pub count: f64,
+}
+
+impl Normalizer {
+    pub fn new(dim: usize) -> Self {
+        Self { mean: vec![0.0; dim], var: vec![1.0; dim], count: 1e-4 }
+    }
+
+    pub fn update(&mut self, rows: &[f32]) {
+        let d = self.mean.len();
+        let n = (rows.len() / d) as f64;
+        if n == 0.0 {
+            return;
+        }
+        for j in 0..d {
+            let col = rows.iter().skip(j).step_by(d).map(|&x| f64::from(x));
+            let m = col.clone().sum::<f64>() / n;
+            let v = col.map(|x| (x - m).powi(2)).sum::<f64>() / n;
+            let total = self.count + n;
+            let delta = m - self.mean[j];
+            self.mean[j] += delta * n / total;
+            self.var[j] = (self.var[j] * self.count + v * n + delta * delta * self.count * n / total) / total;
+        }
+        self.count += n;
+    }
+
+    pub fn apply(&self, rows: &mut [f32]) {
+        let d = self.mean.len();
+        for row in rows.chunks_mut(d) {
+            for (j, x) in row.iter_mut().enumerate() {
+                *x = ((f64::from(*x) - self.mean[j]) / (self.var[j] + 1e-8).sqrt()).clamp(-5.0, 5.0) as f32;
+            }
+        }
+    }
+}
+
+/// Actor, critic, log-std and observation statistics.
+#[derive(Clone, Debug)]
+pub struct Policy {
+    pub actor: Mlp,
+    pub critic: Mlp,
+    pub log_std: Vec<f32>,
+    pub normalizer: Normalizer,
+}
+
+impl Policy {
+    pub fn new(obs: usize, act: usize, cfg: &TrackConfig, rng: &mut impl Rng) -> Self {
+        let sizes = |out| [&[obs][..], &cfg.hidden, &[out]].concat();
+        Self {
+            actor: Mlp::new(&sizes(act), 0.01, rng),
+            critic: Mlp::new(&sizes(1), 1.0, rng),
+            log_std: vec![cfg.init_log_std as f32; act],
+            normalizer: Normalizer::new(obs),
+        }
+    }
+
+    /// Flat parameters: actor, critic, log-std.
+    pub fn params(&self) -> Vec<f32> {
+        [self.actor.params(), self.critic.params(), self.log_std.clone()].concat()
+    }
+
+    pub fn set_params(&mut self, p: &[f32]) {
+        let (a, c) = (self.actor.num_params(), self.critic.num_params());
+        self.actor.set_params(&p[..a]);
+        self.critic.set_params(&p[a..a + c]);
+        self.log_std.copy_from_slice(&p[a + c..]);
+    }
+
+    pub fn num_params(&self) -> usize {
+        self.actor.num_params() + self.critic.num_params() + self.log_std.len()
+    }
+
+    /// Normalised copies of raw observations.
+    pub fn normalise(&self, raw: &[f32]) -> Vec<f32> {
+        let mut x = raw.to_vec();
+        self.normalizer.apply(&mut x);
+        x
+    }
+
+    /// Deterministic actions (the mean) for raw observations.
+    pub fn act(&self, raw: &[f32], n: usize) -> Vec<f32> {
+        self.actor.predict(&self.normalise(raw), n)
+    }
+}
+
+fn log_prob(u: &[f32], mean: &[f32], log_std: &[f32]) -> f32 {
+    u.iter()
+        .zip(mean)
+        .zip(log_std)
+        .map(|((u, m), s)| {
+            let z = (u - m) / s.exp();
+            -0.5 * z * z - s - 0.918_938_5
+        })
+        .sum()
+}
+
+/// One rollout of `steps x envs` transitions (row-major: step, then env).
+pub struct Rollout {
+    pub envs: usize,
+    pub obs: Vec<f32>,
+    pub actions: Vec<f32>,
+    pub log_probs: Vec<f32>,
+    pub values: Vec<f32>,
+    pub rewards: Vec<f32>,
+    /// The episode ended after this transition (failure or time limit).
+    pub dones: Vec<bool>,
+    /// The critic's values of the observations after the last step.
+    pub last_values: Vec<f32>,
+}
+
+/// Samples actions: returns (actions, log-probs, values) for normalised observations.
+pub fn sample(policy: &Policy, obs: &[f32], n: usize, rng: &mut impl Rng) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let mean = policy.actor.predict(obs, n);
+    let values = policy.critic.predict(obs, n);
+    let act = policy.log_std.len();
+    let mut actions = mean.clone();
+    for row in actions.chunks_mut(act) {
+        for (a, s) in row.iter_mut().zip(&policy.log_std) {
+            let z: f32 = StandardNormal.sample(rng);
+            *a += s.exp() * z;
+        }
+    }
+    let log_probs = (0..n)
+        .map(|i| log_prob(&actions[i * act..(i + 1) * act], &mean[i * act..(i + 1) * act], &policy.log_std))
+        .collect();
+    (actions, log_probs, values)
+}
+
+/// GAE advantages and returns.
+pub fn advantages(r: &Rollout, gamma: f32, lambda: f32) -> (Vec<f32>, Vec<f32>) {
+    let e = r.envs;
+    let steps = r.rewards.len() / e;
+    let mut adv = vec![0.0; r.rewards.len()];
+    let mut next_adv = vec![0.0; e];
+    for t in (0..steps).rev() {
+        for i in 0..e {
+            let k = t * e + i;
+            let next_v = if t + 1 < steps { r.values[k + e] } else { r.last_values[i] };
+            let live = if r.dones[k] { 0.0 } else { 1.0 };
+            let delta = r.rewards[k] + gamma * live * next_v - r.values[k];
+            next_adv[i] = delta + gamma * lambda * live * next_adv[i];
+            adv[k] = next_adv[i];
+        }
+    }
+    let returns = adv.iter().zip(&r.values).map(|(a, v)| a + v).collect();
+    (adv, returns)
+}
+
+/// Losses and diagnostics of one update.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct UpdateStats {
+    pub surrogate: f32,
+    pub value_loss: f32,
+    pub entropy: f32,
+    pub kl: f32,
+    pub clip_fraction: f32,
+    pub learning_rate: f32,
+}
+
+/// Optimiser state that persists across iterations.
+pub struct Optimiser {
+    pub adam: Adam,
+    pub lr: f32,
+}
+
+/// The PPO update over one rollout.
+pub fn update(
+    policy: &mut Policy,
+    opt: &mut Optimiser,
+    r: &Rollout,
+    cfg: &TrackConfig,
+    rng: &mut impl Rng,
+) -> UpdateStats {
+    let (gamma, lambda) = (cfg.gamma as f32, cfg.lambda as f32);
+    let n = r.rewards.len();
+    let obs_dim = r.obs.len() / n;
+    let act = policy.log_std.len();
+    let (adv, returns) = advantages(r, gamma, lambda);
+    let mean = adv.iter().sum::<f32>() / adv.len() as f32;
+    let std = (adv.iter().map(|a| (a - mean).powi(2)).sum::<f32>() / adv.len() as f32).sqrt() + 1e-8;
+    let adv: Vec<f32> = adv.iter().map(|a| (a - mean) / std).collect();
+    let mb = n / cfg.minibatches;
+    let (clip, eps_v) = (cfg.clip as f32, cfg.clip as f32);
+    let mut stats = UpdateStats::default();
+    let mut count = 0.0;
+    let mut order: Vec<usize> = (0..n).collect();
+    for _ in 0..cfg.epochs {
+        order.shuffle(rng);
+        for chunk in order.chunks(mb).filter(|c| c.len() == mb) {
+            let gather = |src: &[f32], w: usize| {
+                chunk.iter().flat_map(|&k| src[k * w..(k + 1) * w].iter().copied()).collect::<Vec<f32>>()
+            };
+            let obs = gather(&r.obs, obs_dim);
+            let actions = gather(&r.actions, act);
+            let actor_tape = policy.actor.forward(&obs, mb);
+            let critic_tape = policy.critic.forward(&obs, mb);
+            let mut g_mean = vec![0.0f32; mb * act];
+            let mut g_value = vec![0.0f32; mb];
+            let mut g_log_std = vec![0.0f32; act];
+            let (mut surr, mut vloss, mut kl, mut clipped) = (0.0, 0.0, 0.0, 0.0);
+            let inv = 1.0 / mb as f32;
+            for (row, &k) in chunk.iter().enumerate() {
+                let m = &actor_tape.output[row * act..(row + 1) * act];
+                let u = &actions[row * act..(row + 1) * act];
+                let ratio = (log_prob(u, m, &policy.log_std) - r.log_probs[k]).exp();
+                let a = adv[k];
+                let unclipped = ratio * a;
+                let clipped_obj = ratio.clamp(1.0 - clip, 1.0 + clip) * a;
+                surr += -unclipped.min(clipped_obj) * inv;
+                // d(-min)/d logp = -ratio * a where the unclipped term is the minimum.
+                let active = unclipped <= clipped_obj;
+                clipped += if active { 0.0 } else { inv };
+                let g_logp = if active { -ratio * a * inv } else { 0.0 };
+                for j in 0..act {
+                    let s = policy.log_std[j].exp();
+                    let z = (u[j] - m[j]) / s;
+                    g_mean[row * act + j] = g_logp * z / s;
+                    g_log_std[j] += g_logp * (z * z - 1.0);
+                }
+                // Clipped value loss (coefficient cfg.value_coef), as rsl_rl.
+                let v = critic_tape.output[row];
+                let (v_old, ret) = (r.values[k], returns[k]);
+                let v_clipped = v_old + (v - v_old).clamp(-eps_v, eps_v);
+                let (l1, l2) = ((v - ret).powi(2), (v_clipped - ret).powi(2));
+                vloss += l1.max(l2) * inv;
+                let inside = (v - v_old).abs() <= eps_v;
+                g_value[row] = cfg.value_coef as f32 * if l1 >= l2 || inside { 2.0 * (v - ret) } else { 0.0 } * inv;
+            }
+            // Entropy bonus: d(-c H)/d log_std = -c per dimension.
+            for g in &mut g_log_std {
+                *g -= cfg.entropy as f32;
+            }
+            let entropy: f32 = policy.log_std.iter().map(|s| s + 1.418_938_5).sum();
+            let mut grads = vec![0.0; policy.num_params()];
+            let (na, nc) = (policy.actor.num_params(), policy.critic.num_params());
+            policy.actor.backward(&actor_tape, &g_mean, &mut grads[..na]);
+            policy.critic.backward(&critic_tape, &g_value, &mut grads[na..na + nc]);
+            grads[na + nc..].copy_from_slice(&g_log_std);
+            let norm = grads.iter().map(|g| g * g).sum::<f32>().sqrt();
+            if norm > cfg.max_grad_norm as f32 {
+                let s = cfg.max_grad_norm as f32 / norm;
+                grads.iter_mut().for_each(|g| *g *= s);
+            }
+            let old_mean = actor_tape.output;
+            let old_log_std = policy.log_std.clone();
+            let mut p = policy.params();
+            opt.adam.step(&mut p, &grads, opt.lr);
+            policy.set_params(&p);
+            // Adaptive learning rate from the KL between the policy before and after the step.
+            let new_mean = policy.actor.predict(&obs, mb);
+            for row in 0..mb {
+                for j in 0..act {
+                    let (s0, s1) = (old_log_std[j], policy.log_std[j]);
+                    let (m0, m1) = (old_mean[row * act + j], new_mean[row * act + j]);
+                    kl += (s1 - s0 + ((2.0 * s0).exp() + (m0 - m1).powi(2)) / (2.0 * (2.0 * s1).exp()) - 0.5) * inv;
+                }
+            }
+            let target = cfg.kl_target as f32;
+            if kl > 2.0 * target {
+                opt.lr = (opt.lr / 1.5).max(1e-5);
+            } else if kl < 0.5 * target && kl > 0.0 {
+                opt.lr = (opt.lr * 1.5).min(1e-2);
+            }
+            stats.surrogate += surr;
+            stats.value_loss += vloss;
+            stats.entropy += entropy;
+            stats.kl += kl;
+            stats.clip_fraction += clipped;
+            count += 1.0;
+        }
+    }
+    for x in [&mut stats.surrogate, &mut stats.value_loss, &mut stats.entropy, &mut stats.kl, &mut stats.clip_fraction]
+    {
+        *x /= count;
+    }
+    stats.learning_rate = opt.lr;
+    stats
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn gae_matches_hand_computation() {
+        // One env, three steps, done after the second.
+        let r = Rollout {
+            envs: 1,
+            obs: vec![],
+            actions: vec![],
+            log_probs: vec![],
+            values: vec![1.0, 2.0, 3.0],
+            rewards: vec![1.0, 1.0, 1.0],
+            dones: vec![false, true, false],
+            last_values: vec![4.0],
+        };
+        let (adv, ret) = advantages(&r, 0.9, 0.5);
+        let d2 = 1.0 + 0.9 * 4.0 - 3.0;
+        let d1 = 1.0 - 2.0; // terminal: no bootstrap
+        let d0 = 1.0 + 0.9 * 2.0 - 1.0;
+        let expect = [d0 + 0.45 * d1, d1, d2];
+        for k in 0..3 {
+            assert!((adv[k] - expect[k]).abs() < 1e-6, "{k}: {} vs {}", adv[k], expect[k]);
+            assert!((ret[k] - (expect[k] + r.values[k])).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn normalizer_tracks_mean_and_variance() {
+        let mut n = Normalizer::new(2);
+        let rows: Vec<f32> = (0..1000).flat_map(|i| [i as f32, 5.0]).collect();
+        // Two batches of 400 and 600 rows merge into the statistics of all 1000.
+        n.update(&rows[..800]);
+        n.update(&rows[800..]);
+        assert!((n.mean[0] - 499.5).abs() < 0.01 && (n.mean[1] - 5.0).abs() < 1e-3, "{:?}", n.mean);
+        let var: f64 = (0..1000).map(|i| (i as f64 - 499.5).powi(2)).sum::<f64>() / 1000.0;
+        assert!((n.var[0] - var).abs() / var < 1e-3, "{} vs {var}", n.var[0]);
+    }
+}

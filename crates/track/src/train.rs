@@ -1,0 +1,651 @@
+//! The training loop: collection on all cores, PPO updates, logs, atomic checkpoints, resume,
+//! and evaluation of tracking quality.
+
+use crate::TrackError;
+use crate::mlp::Adam;
+use crate::ppo::{self, Normalizer, Optimiser, Policy, Rollout, UpdateStats};
+use crate::task::{Ending, OBS_DIM, Reference, RewardTerms, Tracker};
+use flowmimic_motion::Clip;
+use flowmimic_sim::{CONTROL_HZ, Humanoid, NUM_DOFS};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rayon::prelude::*;
+use safetensors::{Dtype, SafeTensors, tensor::TensorView};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Instant;
+
+/// PPO and task settings (defaults: BeyondMimic's recipe at CPU scale).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrackConfig {
+    /// Parallel environments.
+    pub envs: usize,
+    /// Control steps per environment per iteration.
+    pub horizon: usize,
+    /// Training iterations.
+    pub iterations: usize,
+    /// Hidden layer widths of actor and critic (ELU).
+    pub hidden: Vec<usize>,
+    pub learning_rate: f64,
+    pub kl_target: f64,
+    pub clip: f64,
+    pub entropy: f64,
+    pub value_coef: f64,
+    pub gamma: f64,
+    pub lambda: f64,
+    pub epochs: usize,
+    pub minibatches: usize,
+    pub max_grad_norm: f64,
+    /// Initial log standard deviation of the policy (in units of `action_scale`).
+    pub init_log_std: f64,
+    /// Radians of PD-target residual per unit of policy output.
+    pub action_scale: f64,
+    /// Uniform noise on hinge angles (rad) and root velocity (m/s) at reset.
+    pub init_noise: f64,
+    /// Largest random push, m/s (0 disables pushes).
+    pub push_max: f64,
+    /// Seconds between pushes, drawn uniformly.
+    pub push_interval: [f64; 2],
+    /// Termination: pelvis or end-effector height error, m.
+    pub max_height_error: f64,
+    /// Termination: difference of gravity's z in the pelvis frame.
+    pub max_tilt_error: f64,
+    /// Adaptive start sampling: bin length (s), smoothing factor, uniform share.
+    pub bin_seconds: f64,
+    pub bin_smoothing: f64,
+    pub uniform_share: f64,
+    pub seed: u64,
+    /// Iterations between checkpoints.
+    pub checkpoint_every: usize,
+}
+
+impl Default for TrackConfig {
+    fn default() -> Self {
+        Self {
+            envs: 64,
+            horizon: 32,
+            iterations: 1500,
+            hidden: vec![256, 128, 64],
+            learning_rate: 1e-3,
+            kl_target: 0.01,
+            clip: 0.2,
+            entropy: 0.005,
+            value_coef: 1.0,
+            gamma: 0.99,
+            lambda: 0.95,
+            epochs: 5,
+            minibatches: 4,
+            max_grad_norm: 1.0,
+            init_log_std: -0.5,
+            action_scale: 0.15,
+            init_noise: 0.05,
+            push_max: 0.5,
+            push_interval: [1.0, 3.0],
+            max_height_error: 0.25,
+            max_tilt_error: 0.8,
+            bin_seconds: 1.0,
+            bin_smoothing: 0.1,
+            uniform_share: 0.3,
+            seed: 0,
+            checkpoint_every: 25,
+        }
+    }
+}
+
+impl TrackConfig {
+    pub fn validate(&self) -> Result<(), TrackError> {
+        let bad = |m: &str| Err(TrackError::Invalid(format!("track: {m}")));
+        if self.envs == 0 || self.horizon == 0 || self.epochs == 0 || self.minibatches == 0 {
+            return bad("envs, horizon, epochs and minibatches must be positive");
+        }
+        if self.envs * self.horizon < self.minibatches {
+            return bad("envs * horizon must be at least the number of minibatches");
+        }
+        if self.hidden.is_empty() || self.hidden.contains(&0) {
+            return bad("hidden must list positive layer widths");
+        }
+        Ok(())
+    }
+}
+
+/// Start-frame sampling weighted by where episodes fail (BeyondMimic's adaptive sampling).
+#[derive(Clone, Debug)]
+pub struct StartSampler {
+    bin_frames: usize,
+    frames: usize,
+    /// Smoothed failure counts per bin.
+    pub failures: Vec<f64>,
+    pending: Vec<f64>,
+}
+
+impl StartSampler {
+    fn new(frames: usize, cfg: &TrackConfig) -> Self {
+        let bin_frames = ((cfg.bin_seconds * CONTROL_HZ) as usize).max(1);
+        // The last frame cannot start an episode (there is no next reference frame).
+        let bins = (frames - 1).div_ceil(bin_frames);
+        Self { bin_frames, frames, failures: vec![0.0; bins], pending: vec![0.0; bins] }
+    }
+
+    fn record_failure(&mut self, frame: usize) {
+        let b = (frame / self.bin_frames).min(self.pending.len() - 1);
+        // The cause usually lies a little before the fall: credit the previous bin too.
+        self.pending[b] += 1.0;
+        if b > 0 {
+            self.pending[b - 1] += 0.5;
+        }
+    }
+
+    fn end_iteration(&mut self, cfg: &TrackConfig) {
+        for (f, p) in self.failures.iter_mut().zip(&mut self.pending) {
+            *f = (1.0 - cfg.bin_smoothing) * *f + cfg.bin_smoothing * *p;
+            *p = 0.0;
+        }
+    }
+
+    fn sample(&self, cfg: &TrackConfig, rng: &mut impl Rng) -> usize {
+        let bins = self.failures.len();
+        let total: f64 = self.failures.iter().sum();
+        let weight = |b: usize| {
+            let fail = if total > 0.0 { self.failures[b] / total } else { 1.0 / bins as f64 };
+            (1.0 - cfg.uniform_share) * fail + cfg.uniform_share / bins as f64
+        };
+        let mut x = rng.random::<f64>();
+        let mut bin = bins - 1;
+        for b in 0..bins {
+            x -= weight(b);
+            if x <= 0.0 {
+                bin = b;
+                break;
+            }
+        }
+        let lo = bin * self.bin_frames;
+        let hi = ((bin + 1) * self.bin_frames).min(self.frames - 1);
+        rng.random_range(lo..hi.max(lo + 1))
+    }
+}
+
+/// What one iteration did.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct IterationLog {
+    pub iteration: usize,
+    pub env_steps: u64,
+    pub mean_reward: f32,
+    pub episodes: usize,
+    pub failures: usize,
+    /// Mean length of the episodes that ended this iteration, in control steps.
+    pub episode_length: f32,
+    /// Mean root-relative body position error, m.
+    pub body_pos_error: f32,
+    pub surrogate: f32,
+    pub value_loss: f32,
+    pub entropy: f32,
+    pub kl: f32,
+    pub clip_fraction: f32,
+    pub learning_rate: f32,
+    pub physics_seconds: f32,
+    pub network_seconds: f32,
+    pub update_seconds: f32,
+    pub steps_per_second: f32,
+}
+
+impl IterationLog {
+    pub const CSV_HEADER: &str = "iteration,env_steps,mean_reward,episodes,failures,episode_length,body_pos_error,surrogate,value_loss,entropy,kl,clip_fraction,learning_rate,physics_seconds,network_seconds,update_seconds,steps_per_second";
+
+    pub fn csv_row(&self) -> String {
+        format!(
+            "{},{},{:.4},{},{},{:.1},{:.4},{:.5},{:.5},{:.3},{:.5},{:.3},{:.2e},{:.3},{:.3},{:.3},{:.0}",
+            self.iteration,
+            self.env_steps,
+            self.mean_reward,
+            self.episodes,
+            self.failures,
+            self.episode_length,
+            self.body_pos_error,
+            self.surrogate,
+            self.value_loss,
+            self.entropy,
+            self.kl,
+            self.clip_fraction,
+            self.learning_rate,
+            self.physics_seconds,
+            self.network_seconds,
+            self.update_seconds,
+            self.steps_per_second
+        )
+    }
+}
+
+/// A PPO run on one reference clip.
+pub struct Trainer {
+    pub cfg: TrackConfig,
+    pub reference: Arc<Reference>,
+    pub policy: Policy,
+    opt: Optimiser,
+    trackers: Vec<Tracker>,
+    rngs: Vec<StdRng>,
+    rng: StdRng,
+    sampler: StartSampler,
+    pub iteration: usize,
+    pub env_steps: u64,
+    episode_steps: Vec<usize>,
+}
+
+impl Trainer {
+    pub fn new(humanoid: &Arc<Humanoid>, clip: Clip, cfg: TrackConfig) -> Result<Self, TrackError> {
+        cfg.validate()?;
+        if clip.len() < 3 {
+            return Err(TrackError::Invalid(format!(
+                "clip {} has {} frames; tracking needs 3 or more",
+                clip.name,
+                clip.len()
+            )));
+        }
+        let mut rng = StdRng::seed_from_u64(cfg.seed);
+        let policy = Policy::new(OBS_DIM, NUM_DOFS, &cfg, &mut rng);
+        let opt = Optimiser { adam: Adam::new(policy.num_params()), lr: cfg.learning_rate as f32 };
+        let reference = Arc::new(Reference::new(clip));
+        let sampler = StartSampler::new(reference.len(), &cfg);
+        let rngs = (0..cfg.envs)
+            .map(|i| StdRng::seed_from_u64(cfg.seed.wrapping_mul(1_000_003).wrapping_add(i as u64 + 1)))
+            .collect();
+        let trackers = (0..cfg.envs).map(|_| Tracker::new(humanoid)).collect();
+        let mut trainer = Self {
+            episode_steps: vec![0; cfg.envs],
+            cfg,
+            reference,
+            policy,
+            opt,
+            trackers,
+            rngs,
+            rng,
+            sampler,
+            iteration: 0,
+            env_steps: 0,
+        };
+        trainer.reset_all()?;
+        Ok(trainer)
+    }
+
+    fn reset_all(&mut self) -> Result<(), TrackError> {
+        for i in 0..self.trackers.len() {
+            let start = self.sampler.sample(&self.cfg, &mut self.rng);
+            self.trackers[i].reset(&self.reference, start, &self.cfg, &mut self.rngs[i])?;
+            self.episode_steps[i] = 0;
+        }
+        Ok(())
+    }
+
+    fn observe_all(&self, out: &mut [f32]) {
+        let reference = &self.reference;
+        self.trackers.par_iter().zip(out.par_chunks_mut(OBS_DIM)).for_each(|(t, o)| t.observe(reference, o));
+    }
+
+    /// One iteration: collect `envs x horizon` steps, then update.
+    pub fn iterate(&mut self) -> Result<IterationLog, TrackError> {
+        let (e, horizon) = (self.cfg.envs, self.cfg.horizon);
+        let gamma = self.cfg.gamma as f32;
+        let mut rollout = Rollout {
+            envs: e,
+            obs: Vec::with_capacity(e * horizon * OBS_DIM),
+            actions: Vec::with_capacity(e * horizon * NUM_DOFS),
+            log_probs: Vec::new(),
+            values: Vec::new(),
+            rewards: Vec::new(),
+            dones: Vec::new(),
+            last_values: Vec::new(),
+        };
+        let mut log = IterationLog { iteration: self.iteration + 1, ..Default::default() };
+        let (mut physics, mut network) = (0.0f64, 0.0f64);
+        let (mut reward_sum, mut error_sum, mut ended_lengths) = (0.0f64, 0.0f64, 0usize);
+        let mut raw = vec![0.0f32; e * OBS_DIM];
+        self.observe_all(&mut raw);
+        let started = Instant::now();
+        for _ in 0..horizon {
+            let t0 = Instant::now();
+            self.policy.normalizer.update(&raw);
+            let obs = self.policy.normalise(&raw);
+            let (actions, log_probs, values) = ppo::sample(&self.policy, &obs, e, &mut self.rng);
+            network += t0.elapsed().as_secs_f64();
+            let t1 = Instant::now();
+            let (reference, cfg) = (&self.reference, &self.cfg);
+            let results: Vec<(RewardTerms, Ending)> = self
+                .trackers
+                .par_iter_mut()
+                .zip(self.rngs.par_iter_mut())
+                .zip(actions.par_chunks(NUM_DOFS))
+                .map(|((tracker, rng), u)| tracker.step(reference, u, cfg, rng))
+                .collect();
+            for (i, (terms, ending)) in results.iter().enumerate() {
+                let total = terms.total();
+                if !total.is_finite() {
+                    return Err(TrackError::NonFinite {
+                        iteration: log.iteration,
+                        what: format!("reward of env {i} is {total}: {terms:?}"),
+                    });
+                }
+                reward_sum += f64::from(total);
+                // Rewards are weighted by the step length, as Isaac Lab does: returns stay
+                // O(1-10), the scale rsl_rl's value clipping (0.2) is meant for.
+                let mut reward = total * REWARD_DT;
+                error_sum += f64::from(terms.body_pos_error);
+                self.episode_steps[i] += 1;
+                if *ending == Ending::ClipEnd {
+                    // A time limit, not a failure: bootstrap with the value estimate.
+                    reward += gamma * values[i];
+                }
+                rollout.rewards.push(reward);
+                rollout.dones.push(*ending != Ending::None);
+                if *ending != Ending::None {
+                    log.episodes += 1;
+                    ended_lengths += self.episode_steps[i];
+                    if matches!(ending, Ending::Failed | Ending::Diverged) {
+                        log.failures += 1;
+                        self.sampler.record_failure(self.trackers[i].frame);
+                    }
+                    let start = self.sampler.sample(&self.cfg, &mut self.rng);
+                    self.trackers[i].reset(&self.reference, start, &self.cfg, &mut self.rngs[i])?;
+                    self.episode_steps[i] = 0;
+                }
+            }
+            self.observe_all(&mut raw);
+            physics += t1.elapsed().as_secs_f64();
+            rollout.obs.extend_from_slice(&obs);
+            rollout.actions.extend_from_slice(&actions);
+            rollout.log_probs.extend_from_slice(&log_probs);
+            rollout.values.extend_from_slice(&values);
+        }
+        rollout.last_values = self.policy.critic.predict(&self.policy.normalise(&raw), e);
+        let collect = started.elapsed().as_secs_f64();
+        let t2 = Instant::now();
+        let stats: UpdateStats = ppo::update(&mut self.policy, &mut self.opt, &rollout, &self.cfg, &mut self.rng);
+        if !self.policy.params().iter().all(|p| p.is_finite()) || !stats.value_loss.is_finite() {
+            return Err(TrackError::NonFinite {
+                iteration: log.iteration,
+                what: format!(
+                    "non-finite parameters after the update (value loss {}, kl {})",
+                    stats.value_loss, stats.kl
+                ),
+            });
+        }
+        self.sampler.end_iteration(&self.cfg);
+        self.iteration += 1;
+        self.env_steps += (e * horizon) as u64;
+        let n = (e * horizon) as f64;
+        log.env_steps = self.env_steps;
+        log.mean_reward = (reward_sum / n) as f32;
+        log.body_pos_error = (error_sum / n) as f32;
+        log.episode_length = if log.episodes > 0 { ended_lengths as f32 / log.episodes as f32 } else { 0.0 };
+        log.surrogate = stats.surrogate;
+        log.value_loss = stats.value_loss;
+        log.entropy = stats.entropy;
+        log.kl = stats.kl;
+        log.clip_fraction = stats.clip_fraction;
+        log.learning_rate = stats.learning_rate;
+        log.physics_seconds = physics as f32;
+        log.network_seconds = network as f32;
+        log.update_seconds = t2.elapsed().as_secs_f32();
+        log.steps_per_second = (n / (collect + t2.elapsed().as_secs_f64())) as f32;
+        Ok(log)
+    }
+
+    /// Writes the policy, optimiser state and counters atomically.
+    pub fn save(&self, path: &Path) -> Result<(), TrackError> {
+        let f32s = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+        let f64s = |v: &[f64]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+        let p = &self.policy;
+        let tensors: Vec<(&str, Dtype, Vec<u8>)> = vec![
+            ("actor", Dtype::F32, f32s(&p.actor.params())),
+            ("critic", Dtype::F32, f32s(&p.critic.params())),
+            ("log_std", Dtype::F32, f32s(&p.log_std)),
+            ("obs_mean", Dtype::F64, f64s(&p.normalizer.mean)),
+            ("obs_var", Dtype::F64, f64s(&p.normalizer.var)),
+            ("adam_m", Dtype::F32, f32s(&self.opt.adam.m)),
+            ("adam_v", Dtype::F32, f32s(&self.opt.adam.v)),
+            ("start_failures", Dtype::F64, f64s(&self.sampler.failures)),
+        ];
+        let views: Vec<(&str, TensorView)> = tensors
+            .iter()
+            .map(|(name, dtype, bytes)| {
+                let width = if *dtype == Dtype::F64 { 8 } else { 4 };
+                (*name, TensorView::new(*dtype, vec![bytes.len() / width], bytes).expect("1-d tensor"))
+            })
+            .collect();
+        let meta: HashMap<String, String> = [
+            ("format", POLICY_FORMAT.to_string()),
+            ("config", serde_json::to_string(&self.cfg).expect("json")),
+            ("clip", self.reference.clip.name.clone()),
+            ("clip_frames", self.reference.len().to_string()),
+            ("obs_dim", OBS_DIM.to_string()),
+            ("act_dim", NUM_DOFS.to_string()),
+            ("iteration", self.iteration.to_string()),
+            ("env_steps", self.env_steps.to_string()),
+            ("learning_rate", self.opt.lr.to_string()),
+            ("adam_t", self.opt.adam.t.to_string()),
+            ("obs_count", p.normalizer.count.to_string()),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v))
+        .collect();
+        let bytes = safetensors::serialize(views, Some(meta))
+            .map_err(|e| TrackError::Checkpoint { path: path.into(), message: e.to_string() })?;
+        flowmimic_io::write_atomic(path, &bytes)?;
+        Ok(())
+    }
+
+    /// Continues a run from a checkpoint written by [`Trainer::save`] for the same clip and
+    /// network shape; anything else is refused with the reason.
+    pub fn resume(humanoid: &Arc<Humanoid>, clip: Clip, cfg: TrackConfig, path: &Path) -> Result<Self, TrackError> {
+        let ck = Checkpoint::read(path)?;
+        let bad = |m: String| TrackError::Checkpoint { path: path.into(), message: m };
+        if ck.meta("clip")? != clip.name || ck.meta("clip_frames")? != clip.len().to_string() {
+            return Err(bad(format!(
+                "checkpoint is for clip '{}' ({} frames), not '{}' ({} frames)",
+                ck.meta("clip")?,
+                ck.meta("clip_frames")?,
+                clip.name,
+                clip.len()
+            )));
+        }
+        let saved: TrackConfig = serde_json::from_str(&ck.meta("config")?).map_err(|e| bad(format!("config: {e}")))?;
+        if saved.hidden != cfg.hidden || saved.envs != cfg.envs {
+            return Err(bad(format!(
+                "checkpoint has hidden {:?} and {} envs; the config asks for {:?} and {}",
+                saved.hidden, saved.envs, cfg.hidden, cfg.envs
+            )));
+        }
+        let mut trainer = Self::new(humanoid, clip, cfg)?;
+        ck.load_policy(&mut trainer.policy)?;
+        trainer.opt.adam.m = ck.f32s("adam_m", trainer.policy.num_params())?;
+        trainer.opt.adam.v = ck.f32s("adam_v", trainer.policy.num_params())?;
+        trainer.opt.adam.t = ck.number("adam_t")? as u64;
+        trainer.opt.lr = ck.number("learning_rate")? as f32;
+        trainer.sampler.failures = ck.f64s("start_failures", trainer.sampler.failures.len())?;
+        trainer.iteration = ck.number("iteration")? as usize;
+        trainer.env_steps = ck.number("env_steps")? as u64;
+        // Fresh episodes, with random streams advanced by the iteration count.
+        trainer.rng = StdRng::seed_from_u64(trainer.cfg.seed ^ (trainer.iteration as u64).wrapping_mul(0x9E37_79B9));
+        trainer.reset_all()?;
+        Ok(trainer)
+    }
+}
+
+pub const POLICY_FORMAT: &str = "flowmimic-policy/1";
+
+/// The control step, seconds: the weight of each step's reward in the return.
+const REWARD_DT: f32 = (1.0 / CONTROL_HZ) as f32;
+
+/// A policy checkpoint read from disk and checked.
+pub struct Checkpoint {
+    path: std::path::PathBuf,
+    bytes: Vec<u8>,
+    meta: HashMap<String, String>,
+}
+
+impl Checkpoint {
+    pub fn read(path: &Path) -> Result<Self, TrackError> {
+        let bytes = flowmimic_io::read(path)?;
+        let bad = |m: String| TrackError::Checkpoint { path: path.into(), message: m };
+        let (_, meta) =
+            SafeTensors::read_metadata(&bytes).map_err(|e| bad(format!("not a policy checkpoint ({e})")))?;
+        let meta = meta.metadata().clone().unwrap_or_default();
+        if meta.get("format").map(String::as_str) != Some(POLICY_FORMAT) {
+            return Err(bad(format!("format is {:?}, expected {POLICY_FORMAT}", meta.get("format"))));
+        }
+        SafeTensors::deserialize(&bytes).map_err(|e| bad(format!("corrupt tensors: {e}")))?;
+        Ok(Self { path: path.into(), bytes, meta })
+    }
+
+    fn bad(&self, m: String) -> TrackError {
+        TrackError::Checkpoint { path: self.path.clone(), message: m }
+    }
+
+    pub fn meta(&self, key: &str) -> Result<String, TrackError> {
+        self.meta.get(key).cloned().ok_or_else(|| self.bad(format!("metadata has no '{key}'")))
+    }
+
+    fn number(&self, key: &str) -> Result<f64, TrackError> {
+        self.meta(key)?.parse().map_err(|_| self.bad(format!("metadata '{key}' is not a number")))
+    }
+
+    fn raw(&self, name: &str, dtype: Dtype, len: usize) -> Result<Vec<u8>, TrackError> {
+        let st = SafeTensors::deserialize(&self.bytes).map_err(|e| self.bad(e.to_string()))?;
+        let t = st.tensor(name).map_err(|e| self.bad(format!("tensor '{name}': {e}")))?;
+        let width = if dtype == Dtype::F64 { 8 } else { 4 };
+        if t.dtype() != dtype || t.data().len() != len * width {
+            return Err(self.bad(format!(
+                "tensor '{name}' has {} bytes of {:?}; expected {len} values of {dtype:?}",
+                t.data().len(),
+                t.dtype()
+            )));
+        }
+        Ok(t.data().to_vec())
+    }
+
+    fn f32s(&self, name: &str, len: usize) -> Result<Vec<f32>, TrackError> {
+        let v: Vec<f32> = self
+            .raw(name, Dtype::F32, len)?
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().expect("4")))
+            .collect();
+        if v.iter().any(|x| !x.is_finite()) {
+            return Err(self.bad(format!("tensor '{name}' holds non-finite values")));
+        }
+        Ok(v)
+    }
+
+    fn f64s(&self, name: &str, len: usize) -> Result<Vec<f64>, TrackError> {
+        Ok(self
+            .raw(name, Dtype::F64, len)?
+            .chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().expect("8")))
+            .collect())
+    }
+
+    /// The config stored with the policy.
+    pub fn config(&self) -> Result<TrackConfig, TrackError> {
+        serde_json::from_str(&self.meta("config")?).map_err(|e| self.bad(format!("config: {e}")))
+    }
+
+    /// Loads weights and observation statistics into a policy of the stored shape.
+    pub fn load_policy(&self, policy: &mut Policy) -> Result<(), TrackError> {
+        if self.number("obs_dim")? as usize != OBS_DIM || self.number("act_dim")? as usize != NUM_DOFS {
+            return Err(self.bad("observation or action size differs from this version's".into()));
+        }
+        policy.actor.set_params(&self.f32s("actor", policy.actor.num_params())?);
+        policy.critic.set_params(&self.f32s("critic", policy.critic.num_params())?);
+        policy.log_std = self.f32s("log_std", NUM_DOFS)?;
+        policy.normalizer = Normalizer {
+            mean: self.f64s("obs_mean", OBS_DIM)?,
+            var: self.f64s("obs_var", OBS_DIM)?,
+            count: self.number("obs_count")?,
+        };
+        Ok(())
+    }
+
+    /// A policy with the stored weights.
+    pub fn policy(&self) -> Result<Policy, TrackError> {
+        let cfg = self.config()?;
+        let mut policy = Policy::new(OBS_DIM, NUM_DOFS, &cfg, &mut StdRng::seed_from_u64(0));
+        self.load_policy(&mut policy)?;
+        Ok(policy)
+    }
+}
+
+/// Tracking quality over whole-clip episodes with the deterministic policy.
+#[derive(Clone, Debug, Serialize)]
+pub struct EvalReport {
+    pub episodes: usize,
+    /// Episodes that reached the end of the clip without a tracking failure.
+    pub success_rate: f64,
+    /// Mean root-relative body position error over all steps, m.
+    pub body_pos_error: f64,
+    /// Mean control steps survived.
+    pub mean_steps: f64,
+    pub clip_steps: usize,
+}
+
+/// Runs `episodes` episodes from the clip's first frame (with the reset noise), pushes off,
+/// or with the survival protocol's kicks (0-0.5 m/s every second) when `kicks`.
+pub fn evaluate(
+    humanoid: &Arc<Humanoid>,
+    policy: &Policy,
+    clip: &Clip,
+    cfg: &TrackConfig,
+    episodes: usize,
+    kicks: bool,
+    seed: u64,
+) -> Result<EvalReport, TrackError> {
+    let reference = Reference::new(clip.clone());
+    let mut eval_cfg = cfg.clone();
+    eval_cfg.push_max = if kicks { 0.5 } else { 0.0 };
+    eval_cfg.push_interval = [1.0, 1.0];
+    let mut trackers: Vec<Tracker> = (0..episodes).map(|_| Tracker::new(humanoid)).collect();
+    let mut rngs: Vec<StdRng> = (0..episodes).map(|i| StdRng::seed_from_u64(seed.wrapping_add(i as u64))).collect();
+    for (t, rng) in trackers.iter_mut().zip(&mut rngs) {
+        t.reset(&reference, 0, &eval_cfg, rng)?;
+    }
+    let mut alive = vec![true; episodes];
+    let mut survived = vec![0usize; episodes];
+    let (mut error_sum, mut error_n, mut successes) = (0.0, 0usize, 0usize);
+    let mut raw = vec![0.0f32; episodes * OBS_DIM];
+    for _ in 0..reference.len() - 1 {
+        trackers.par_iter().zip(raw.par_chunks_mut(OBS_DIM)).for_each(|(t, o)| t.observe(&reference, o));
+        let actions = policy.act(&raw, episodes);
+        let results: Vec<(RewardTerms, Ending)> =
+            trackers
+                .par_iter_mut()
+                .zip(rngs.par_iter_mut())
+                .zip(actions.par_chunks(NUM_DOFS))
+                .zip(alive.par_iter())
+                .map(|(((t, rng), u), &live)| {
+                    if live { t.step(&reference, u, &eval_cfg, rng) } else { (RewardTerms::default(), Ending::Failed) }
+                })
+                .collect();
+        for (i, (terms, ending)) in results.into_iter().enumerate() {
+            if !alive[i] {
+                continue;
+            }
+            survived[i] += 1;
+            error_sum += f64::from(terms.body_pos_error);
+            error_n += 1;
+            match ending {
+                Ending::None => {}
+                Ending::ClipEnd => {
+                    successes += 1;
+                    alive[i] = false;
+                }
+                Ending::Failed | Ending::Diverged => alive[i] = false,
+            }
+        }
+    }
+    Ok(EvalReport {
+        episodes,
+        success_rate: successes as f64 / episodes as f64,
+        body_pos_error: error_sum / error_n.max(1) as f64,
+        mean_steps: survived.iter().sum::<usize>() as f64 / episodes as f64,
+        clip_steps: reference.len() - 1,
+    })
+}

@@ -1,0 +1,100 @@
+//! Tracking tests on the `tiny` scale: the task's rewards and terminations, and that training
+//! runs, checkpoints, resumes and refuses bad checkpoints.
+
+use flowmimic_motion::{Clip, GaitParams, generate};
+use flowmimic_sim::{Humanoid, NUM_DOFS, SimConfig};
+use flowmimic_track::task::{Ending, OBS_DIM, Reference, Tracker};
+use flowmimic_track::train::Checkpoint;
+use flowmimic_track::{TrackConfig, Trainer};
+use rand::SeedableRng;
+use std::sync::Arc;
+
+fn setup() -> (Arc<Humanoid>, Clip) {
+    let h = Humanoid::new(SimConfig::default()).unwrap();
+    let clip = generate(&h, "walk", &GaitParams { duration: 2.0, ..Default::default() }).unwrap().0;
+    (h, clip)
+}
+
+fn tiny() -> TrackConfig {
+    TrackConfig { envs: 4, horizon: 8, iterations: 2, hidden: vec![32, 32], checkpoint_every: 1, ..Default::default() }
+}
+
+#[test]
+fn reference_state_scores_near_the_maximum_and_falling_terminates() {
+    let (h, clip) = setup();
+    let reference = Reference::new(clip);
+    let cfg = TrackConfig { init_noise: 0.0, push_max: 0.0, ..tiny() };
+    let mut rng = rand::rngs::StdRng::seed_from_u64(0);
+    let mut tracker = Tracker::new(&h);
+    tracker.reset(&reference, 10, &cfg, &mut rng).unwrap();
+    let mut obs = vec![f32::NAN; OBS_DIM];
+    tracker.observe(&reference, &mut obs);
+    assert!(obs.iter().all(|x| x.is_finite()), "observation fully written and finite");
+    // Following the reference's own next pose for one step tracks it closely.
+    let (terms, ending) = tracker.step(&reference, &[0.0; NUM_DOFS], &cfg, &mut rng);
+    assert_eq!(ending, Ending::None);
+    assert!(terms.total() > 4.0, "reward {} of 5 on the reference: {terms:?}", terms.total());
+    assert!(terms.body_pos_error < 0.03, "{terms:?}");
+    // Without balance the open-loop reference falls within a few seconds, and that ends it.
+    let mut ended = None;
+    for step in 0..50 {
+        let (_, e) = tracker.step(&reference, &[0.0; NUM_DOFS], &cfg, &mut rng);
+        if e != Ending::None {
+            ended = Some((step, e));
+            break;
+        }
+    }
+    assert!(matches!(ended, Some((_, Ending::Failed | Ending::ClipEnd))), "{ended:?}");
+    // A reset far from the reference fails at once.
+    tracker.reset(&reference, 10, &cfg, &mut rng).unwrap();
+    let lying: Vec<f32> = (0..NUM_DOFS).map(|i| if i % 3 == 1 { 6.0 } else { 0.0 }).collect();
+    let mut failed = false;
+    for _ in 0..30 {
+        if tracker.step(&reference, &lying, &cfg, &mut rng).1 == Ending::Failed {
+            failed = true;
+            break;
+        }
+    }
+    assert!(failed, "bending every pitch hinge 0.9 rad away from the reference must fail tracking within 1 s");
+}
+
+#[test]
+fn training_checkpoints_resumes_and_refuses_bad_checkpoints() {
+    let (h, clip) = setup();
+    let dir = std::env::temp_dir().join(format!("flowmimic-track-{}", std::process::id()));
+    let path = dir.join("policy.safetensors");
+    let mut trainer = Trainer::new(&h, clip.clone(), tiny()).unwrap();
+    for _ in 0..2 {
+        let log = trainer.iterate().unwrap();
+        assert!(log.mean_reward.is_finite() && log.value_loss.is_finite() && log.kl.is_finite());
+    }
+    trainer.save(&path).unwrap();
+    let resumed = Trainer::resume(&h, clip.clone(), tiny(), &path).unwrap();
+    assert_eq!((resumed.iteration, resumed.env_steps), (2, 64));
+    assert_eq!(resumed.policy.params(), trainer.policy.params());
+    assert_eq!(resumed.policy.normalizer.mean, trainer.policy.normalizer.mean);
+    // The stored policy acts like the trained one.
+    let policy = Checkpoint::read(&path).unwrap().policy().unwrap();
+    let obs = vec![0.3f32; OBS_DIM];
+    assert_eq!(policy.act(&obs, 1), trainer.policy.act(&obs, 1));
+    // A checkpoint for another clip, another network, or a damaged file is refused by name.
+    let other = generate(&h, "other", &GaitParams { duration: 3.0, ..Default::default() }).unwrap().0;
+    let err = Trainer::resume(&h, other, tiny(), &path).err().unwrap().to_string();
+    assert!(err.contains("policy.safetensors") && err.contains("clip"), "{err}");
+    let wider = TrackConfig { hidden: vec![64, 64], ..tiny() };
+    assert!(Trainer::resume(&h, clip.clone(), wider, &path).err().unwrap().to_string().contains("hidden"));
+    let bytes = std::fs::read(&path).unwrap();
+    let broken = dir.join("broken.safetensors");
+    std::fs::write(&broken, &bytes[..bytes.len() - 100]).unwrap();
+    let err = Trainer::resume(&h, clip, tiny(), &broken).err().unwrap().to_string();
+    assert!(err.contains("broken.safetensors"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn bad_config_is_refused() {
+    let (h, clip) = setup();
+    for cfg in [TrackConfig { envs: 0, ..tiny() }, TrackConfig { hidden: vec![], ..tiny() }] {
+        assert!(Trainer::new(&h, clip.clone(), cfg).is_err());
+    }
+}
