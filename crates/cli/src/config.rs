@@ -4,6 +4,7 @@
 //! keys are errors, so a typo never silently falls back to a default.
 
 use anyhow::{Context, Result, bail};
+use flowmimic_data::CollectConfig;
 use flowmimic_sim::SimConfig;
 use flowmimic_track::TrackConfig;
 use serde::{Deserialize, Serialize};
@@ -16,6 +17,8 @@ pub struct Config {
     pub sim: SimConfig,
     #[serde(default)]
     pub track: TrackConfig,
+    #[serde(default)]
+    pub collect: CollectConfig,
 }
 
 /// The built-in presets, embedded from `configs/`.

@@ -3,6 +3,7 @@
 //! This file only parses arguments and calls the stage crates.
 
 mod config;
+mod data;
 mod motion;
 mod track;
 
@@ -43,6 +44,22 @@ enum Command {
     /// PPO tracking experts: train on a clip, evaluate tracking quality.
     #[command(subcommand)]
     Track(track::TrackCommand),
+    /// Roll an expert out with action noise (sigma 0.12/0.16/0.24/0.36 on 16/12/6/6 envs) and
+    /// add the noisy states with the clean expert actions to a dataset.
+    Collect {
+        /// The expert (a run's policy.safetensors).
+        #[arg(long)]
+        expert: PathBuf,
+        /// The clip the expert tracks (default: the generated walk).
+        #[arg(long)]
+        clip: Option<PathBuf>,
+        /// Dataset directory (created, or appended to).
+        #[arg(short, long, default_value = "runs/data")]
+        out: PathBuf,
+    },
+    /// Inspect a rollout dataset.
+    #[command(subcommand)]
+    Dataset(data::DatasetCommand),
     /// Measure throughput and print a table of medians.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -73,6 +90,12 @@ enum SimCommand {
 
 #[derive(Subcommand)]
 enum BenchCommand {
+    /// PPO training throughput on 1 and all cores, split into physics, network and update.
+    Track {
+        /// Timed iterations per row (the median is reported).
+        #[arg(long, default_value_t = 5)]
+        iterations: usize,
+    },
     /// Physics and environment throughput.
     Sim {
         /// Environments stepped in parallel for the batched row.
@@ -95,10 +118,35 @@ fn main() {
 fn run(cli: Cli) -> Result<()> {
     let config = Config::load(&cli.settings.preset, cli.settings.config.as_deref())?;
     match cli.command {
+        Command::Collect { expert, clip, out } => {
+            data::run_collect(&Humanoid::new(config.sim)?, expert, clip, out, config.collect.clone())?
+        }
+        Command::Dataset(cmd) => data::run_dataset(cmd)?,
         Command::Config => print!("{}", toml::to_string(&config)?),
         Command::Sim(cmd) => sim(cmd, &config)?,
         Command::Motion(cmd) => motion::run(cmd, &Humanoid::new(config.sim)?)?,
         Command::Track(cmd) => track::run(cmd, &Humanoid::new(config.sim)?, config.track.clone())?,
+        Command::Bench(BenchCommand::Track { iterations }) => {
+            let humanoid = Humanoid::new(config.sim)?;
+            let clip = flowmimic_motion::generate(&humanoid, "walk", &Default::default())?.0;
+            let cfg = &config.track;
+            println!(
+                "PPO iteration: {} envs x {} steps, hidden {:?}, {} epochs x {} minibatches",
+                cfg.envs, cfg.horizon, cfg.hidden, cfg.epochs, cfg.minibatches
+            );
+            println!(
+                "{:>7} {:>12} {:>11} {:>11} {:>11}",
+                "threads", "env steps/s", "physics s", "network s", "update s"
+            );
+            let all = std::thread::available_parallelism().map_or(1, |n| n.get());
+            for threads in if all > 1 { vec![1, all] } else { vec![1] } {
+                let log = flowmimic_track::train::bench(&humanoid, clip.clone(), cfg.clone(), iterations, threads)?;
+                println!(
+                    "{threads:>7} {:>12.0} {:>11.3} {:>11.3} {:>11.3}",
+                    log.steps_per_second, log.physics_seconds, log.network_seconds, log.update_seconds
+                );
+            }
+        }
         Command::Bench(BenchCommand::Sim { envs, repeats }) => {
             let humanoid = Humanoid::new(config.sim)?;
             println!(

@@ -3,6 +3,7 @@
 use anyhow::{Context, Result};
 use clap::Subcommand;
 use flowmimic_motion::{Clip, GaitParams};
+use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::Humanoid;
 use flowmimic_track::train::{Checkpoint, IterationLog};
 use flowmimic_track::{TrackConfig, Trainer, evaluate};
@@ -27,6 +28,11 @@ pub enum TrackCommand {
         #[arg(long)]
         resume: bool,
     },
+    /// Redraw a run's learning curves (reward, episode length, error) from its log.csv.
+    Plot {
+        /// The run directory.
+        run: PathBuf,
+    },
     /// Tracking metrics of a trained policy on its clip.
     Eval {
         /// The policy file (policy.safetensors of a run).
@@ -42,7 +48,29 @@ pub enum TrackCommand {
     },
 }
 
-fn load_clip(humanoid: &Arc<Humanoid>, clip: Option<&Path>) -> Result<Clip> {
+/// Learning curves from the CSV rows: reward, episode length and tracking error.
+fn plot_curves(out: &Path, rows: &[String]) -> Result<()> {
+    let column = |k: usize| -> Vec<(f64, f64)> {
+        rows.iter()
+            .filter_map(|r| {
+                let f: Vec<f64> = r.split(',').filter_map(|x| x.parse().ok()).collect();
+                (f.len() > k).then(|| (f[1], f[k]))
+            })
+            .collect()
+    };
+    for (stem, title, y, k) in [
+        ("reward", "mean reward per step", "reward (max 5)", 2),
+        ("episode_length", "mean length of ended episodes", "control steps", 5),
+        ("body_error", "mean body position error (character frame)", "metres", 6),
+    ] {
+        let chart = Chart::new(title, "environment steps", y).series(Series::line(stem, column(k)));
+        chart.save(&out.join(stem))?;
+    }
+    Ok(())
+}
+
+/// The clip a run tracks: a file, or the default generated 10 s straight walk.
+pub(crate) fn load_clip(humanoid: &Arc<Humanoid>, clip: Option<&Path>) -> Result<Clip> {
     Ok(match clip {
         Some(path) => Clip::load(humanoid, path)?,
         None => {
@@ -107,6 +135,7 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
                         .collect::<Vec<_>>()
                         .join("\n");
                     flowmimic_io::write_atomic(&log_path, format!("{csv}\n").as_bytes())?;
+                    plot_curves(&out, &rows)?;
                 }
                 eprintln!(
                     "[{:>5}/{}] {:>9} steps  reward {:.3}  episode {:>5.1}  fails {:>3}/{:<3}  body err {:.3} m  kl {:.4}  lr {:.1e}  {:>5.0} steps/s  {:.0} s",
@@ -125,6 +154,12 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
                 );
             }
             eprintln!("wrote {} and {}", policy_path.display(), log_path.display());
+        }
+        TrackCommand::Plot { run } => {
+            let text = flowmimic_io::read_to_string(&run.join("log.csv"))?;
+            let rows: Vec<String> = text.lines().skip(1).map(String::from).collect();
+            plot_curves(&run, &rows)?;
+            eprintln!("wrote reward, episode_length and body_error .png/.svg in {}", run.display());
         }
         TrackCommand::Eval { policy, clip, episodes, kicks } => {
             let ck = Checkpoint::read(&policy)?;

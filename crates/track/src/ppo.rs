@@ -116,6 +116,9 @@ pub struct Rollout {
     pub obs: Vec<f32>,
     pub actions: Vec<f32>,
     pub log_probs: Vec<f32>,
+    /// The policy's means when acting, and its log-std then (for the KL of the update).
+    pub means: Vec<f32>,
+    pub log_std: Vec<f32>,
     pub values: Vec<f32>,
     pub rewards: Vec<f32>,
     /// The episode ended after this transition (failure or time limit).
@@ -124,8 +127,16 @@ pub struct Rollout {
     pub last_values: Vec<f32>,
 }
 
-/// Samples actions: returns (actions, log-probs, values) for normalised observations.
-pub fn sample(policy: &Policy, obs: &[f32], n: usize, rng: &mut impl Rng) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+/// What the policy did for a batch of observations.
+pub struct Sampled {
+    pub actions: Vec<f32>,
+    pub means: Vec<f32>,
+    pub log_probs: Vec<f32>,
+    pub values: Vec<f32>,
+}
+
+/// Samples actions for normalised observations.
+pub fn sample(policy: &Policy, obs: &[f32], n: usize, rng: &mut impl Rng) -> Sampled {
     let mean = policy.actor.predict(obs, n);
     let values = policy.critic.predict(obs, n);
     let act = policy.log_std.len();
@@ -139,7 +150,7 @@ pub fn sample(policy: &Policy, obs: &[f32], n: usize, rng: &mut impl Rng) -> (Ve
     let log_probs = (0..n)
         .map(|i| log_prob(&actions[i * act..(i + 1) * act], &mean[i * act..(i + 1) * act], &policy.log_std))
         .collect();
-    (actions, log_probs, values)
+    Sampled { actions, means: mean, log_probs, values }
 }
 
 /// GAE advantages and returns.
@@ -208,6 +219,7 @@ pub fn update(
             };
             let obs = gather(&r.obs, obs_dim);
             let actions = gather(&r.actions, act);
+            let old_means = gather(&r.means, act);
             let actor_tape = policy.actor.forward(&obs, mb);
             let critic_tape = policy.critic.forward(&obs, mb);
             let mut g_mean = vec![0.0f32; mb * act];
@@ -257,17 +269,12 @@ pub fn update(
                 let s = cfg.max_grad_norm as f32 / norm;
                 grads.iter_mut().for_each(|g| *g *= s);
             }
-            let old_mean = actor_tape.output;
-            let old_log_std = policy.log_std.clone();
-            let mut p = policy.params();
-            opt.adam.step(&mut p, &grads, opt.lr);
-            policy.set_params(&p);
-            // Adaptive learning rate from the KL between the policy before and after the step.
-            let new_mean = policy.actor.predict(&obs, mb);
+            // Adaptive learning rate (rsl_rl): KL from the policy that collected the data to
+            // the current one, before this step.
             for row in 0..mb {
                 for j in 0..act {
-                    let (s0, s1) = (old_log_std[j], policy.log_std[j]);
-                    let (m0, m1) = (old_mean[row * act + j], new_mean[row * act + j]);
+                    let (s0, s1) = (r.log_std[j], policy.log_std[j]);
+                    let (m0, m1) = (old_means[row * act + j], actor_tape.output[row * act + j]);
                     kl += (s1 - s0 + ((2.0 * s0).exp() + (m0 - m1).powi(2)) / (2.0 * (2.0 * s1).exp()) - 0.5) * inv;
                 }
             }
@@ -277,6 +284,9 @@ pub fn update(
             } else if kl < 0.5 * target && kl > 0.0 {
                 opt.lr = (opt.lr * 1.5).min(1e-2);
             }
+            let mut p = policy.params();
+            opt.adam.step(&mut p, &grads, opt.lr);
+            policy.set_params(&p);
             stats.surrogate += surr;
             stats.value_loss += vloss;
             stats.entropy += entropy;
@@ -305,6 +315,8 @@ mod tests {
             obs: vec![],
             actions: vec![],
             log_probs: vec![],
+            means: vec![],
+            log_std: vec![],
             values: vec![1.0, 2.0, 3.0],
             rewards: vec![1.0, 1.0, 1.0],
             dones: vec![false, true, false],

@@ -181,17 +181,36 @@ impl Tracker {
         rng: &mut impl Rng,
     ) -> (RewardTerms, Ending) {
         let a = self.action(reference, u, cfg);
-        if self.env.step(&a).is_err() {
+        if self.advance(&a, cfg, rng).is_err() {
             return (RewardTerms::default(), Ending::Diverged);
-        }
-        self.frame += 1;
-        if cfg.push_max > 0.0 && self.env.time() >= self.next_push {
-            let (speed, dir) = (rng.random_range(0.0..=cfg.push_max), rng.random_range(0.0..std::f64::consts::TAU));
-            let _ = self.env.kick([speed * dir.cos(), speed * dir.sin()]);
-            self.next_push = self.env.time() + rng.random_range(cfg.push_interval[0]..=cfg.push_interval[1]);
         }
         let terms = self.rewards(reference, u, cfg);
         self.prev_residual.copy_from_slice(u);
+        (terms, self.ending(reference, cfg))
+    }
+
+    /// One control step executing environment action `a` as given (data collection executes
+    /// noisy actions this way); no rewards.
+    pub fn step_action(&mut self, reference: &Reference, a: &[f32], cfg: &TrackConfig, rng: &mut impl Rng) -> Ending {
+        match self.advance(a, cfg, rng) {
+            Ok(()) => self.ending(reference, cfg),
+            Err(_) => Ending::Diverged,
+        }
+    }
+
+    fn advance(&mut self, a: &[f32], cfg: &TrackConfig, rng: &mut impl Rng) -> Result<(), SimError> {
+        self.env.step(a)?;
+        self.frame += 1;
+        if cfg.push_max > 0.0 && self.env.time() >= self.next_push {
+            let (speed, dir) = (rng.random_range(0.0..=cfg.push_max), rng.random_range(0.0..std::f64::consts::TAU));
+            self.env.kick([speed * dir.cos(), speed * dir.sin()])?;
+            self.next_push = self.env.time() + rng.random_range(cfg.push_interval[0]..=cfg.push_interval[1]);
+        }
+        Ok(())
+    }
+
+    /// Failure (pelvis height, tilt or end-effector height off the reference), clip end, or on.
+    fn ending(&self, reference: &Reference, cfg: &TrackConfig) -> Ending {
         let k = self.env.bodies();
         let r = &reference.clip.bodies[self.frame];
         let p = body::PELVIS;
@@ -200,14 +219,13 @@ impl Tracker {
             || [body::L_ANKLE, body::R_ANKLE, body::L_HAND, body::R_HAND]
                 .iter()
                 .any(|&b| (k.pos[b].z - r.pos[b].z).abs() > cfg.max_height_error);
-        let ending = if failed {
+        if failed {
             Ending::Failed
         } else if self.frame + 1 >= reference.len() {
             Ending::ClipEnd
         } else {
             Ending::None
-        };
-        (terms, ending)
+        }
     }
 
     fn rewards(&self, reference: &Reference, u: &[f32], cfg: &TrackConfig) -> RewardTerms {

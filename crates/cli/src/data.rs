@@ -1,0 +1,147 @@
+//! `flowmimic collect` and `flowmimic dataset ...`: noisy expert rollouts and their inspection.
+
+use anyhow::Result;
+use clap::Subcommand;
+use flowmimic_data::{CollectConfig, Dataset, ShardInfo, collect};
+use flowmimic_plot::{Chart, Series};
+use flowmimic_sim::skeleton::body;
+use flowmimic_sim::state::offset;
+use flowmimic_sim::{CONTROL_HZ, Humanoid, NUM_DOFS, STATE_DIM};
+use flowmimic_track::train::Checkpoint;
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+#[derive(Subcommand)]
+pub enum DatasetCommand {
+    /// Hours per clip and sigma, fall rates, feature ranges, and coverage plots (PNG/SVG).
+    Inspect {
+        /// The dataset directory.
+        dir: PathBuf,
+    },
+}
+
+/// `flowmimic collect`: one expert on its clip, appended to the dataset in `out`.
+pub fn run_collect(
+    humanoid: &Arc<Humanoid>,
+    expert: PathBuf,
+    clip: Option<PathBuf>,
+    out: PathBuf,
+    cfg: CollectConfig,
+) -> Result<()> {
+    let ck = Checkpoint::read(&expert)?;
+    let (expert_cfg, policy) = (ck.config()?, ck.policy()?);
+    let clip = crate::track::load_clip(humanoid, clip.as_deref())?;
+    if ck.meta("clip")? != clip.name {
+        anyhow::bail!(
+            "{} was trained on clip '{}', not '{}': pass its clip with --clip",
+            expert.display(),
+            ck.meta("clip")?,
+            clip.name
+        );
+    }
+    let mut dataset = Dataset::open_or_create(&out)?;
+    let envs: usize = cfg.noise.iter().map(|n| n.1).sum();
+    eprintln!(
+        "collecting {} with {envs} noisy rollouts of {} steps",
+        clip.name,
+        if cfg.rollout_steps == 0 { clip.len() - 1 } else { cfg.rollout_steps }
+    );
+    let (shard, stats) = collect(humanoid, &clip, &policy, &expert_cfg, &cfg)?;
+    let info = ShardInfo {
+        file: format!("{}.rollouts.safetensors", clip.name),
+        clip: clip.name.clone(),
+        expert: expert.display().to_string(),
+        seed: cfg.seed,
+        steps: shard.steps(),
+        rollouts: shard.rollout.last().map_or(0, |r| *r as usize + 1),
+        sigmas: cfg.noise.clone(),
+        falls: stats.falls.clone(),
+        sha256: String::new(),
+    };
+    dataset.add(info, &shard)?;
+    println!("{} steps in {:.1} s: {:.0} steps/s", stats.steps, stats.seconds, stats.steps as f64 / stats.seconds);
+    println!("{:>6} {:>9} {:>6} {:>10}", "sigma", "episodes", "falls", "fall rate");
+    for (sigma, episodes, falls) in &stats.falls {
+        println!("{sigma:>6.2} {episodes:>9} {falls:>6} {:>9.0}%", 100.0 * *falls as f64 / (*episodes).max(1) as f64);
+    }
+    println!("dataset {} now holds {} clips", out.display(), dataset.manifest.shards.len());
+    Ok(())
+}
+
+fn histogram(values: &[f64], lo: f64, hi: f64, bins: usize) -> Vec<(f64, f64)> {
+    let mut counts = vec![0.0; bins];
+    for v in values {
+        let b = (((v - lo) / (hi - lo)) * bins as f64).floor();
+        if b >= 0.0 && (b as usize) < bins {
+            counts[b as usize] += 1.0;
+        }
+    }
+    let total = values.len().max(1) as f64;
+    counts.iter().enumerate().map(|(b, c)| (lo + (b as f64 + 0.5) * (hi - lo) / bins as f64, c / total)).collect()
+}
+
+pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
+    let DatasetCommand::Inspect { dir } = cmd;
+    let dataset = Dataset::open(&dir)?;
+    let shards = dataset.load_all()?;
+    println!("{:<20} {:>6} {:>9} {:>8}", "clip", "sigma", "steps", "hours");
+    let mut per_sigma: BTreeMap<String, (usize, usize, usize)> = BTreeMap::new();
+    let (mut speeds, mut hands) = (Vec::new(), Vec::new());
+    let (mut s_lo, mut s_hi) = (vec![f32::MAX; STATE_DIM], vec![f32::MIN; STATE_DIM]);
+    let (mut a_lo, mut a_hi) = (f32::MAX, f32::MIN);
+    for (info, shard) in &shards {
+        let mut steps: BTreeMap<String, usize> = BTreeMap::new();
+        for &s in &shard.sigma {
+            *steps.entry(format!("{s:.2}")).or_default() += 1;
+        }
+        for (sigma, n) in &steps {
+            println!("{:<20} {sigma:>6} {n:>9} {:>8.3}", info.clip, *n as f64 / CONTROL_HZ / 3600.0);
+        }
+        for &(sigma, episodes, falls) in &info.falls {
+            let e = per_sigma.entry(format!("{sigma:.2}")).or_default();
+            e.0 += episodes;
+            e.1 += falls;
+            e.2 += 1;
+        }
+        for row in shard.state.chunks(STATE_DIM) {
+            for (i, &x) in row.iter().enumerate() {
+                s_lo[i] = s_lo[i].min(x);
+                s_hi[i] = s_hi[i].max(x);
+            }
+            speeds.push(f64::from(row[offset::ROOT_VEL]).hypot(f64::from(row[offset::ROOT_VEL + 1])));
+            for hand in [body::L_HAND, body::R_HAND] {
+                hands.push(f64::from(row[offset::ROOT_POS + 2] + row[offset::BODY_POS + 3 * hand + 2]));
+            }
+        }
+        for &a in &shard.action {
+            a_lo = a_lo.min(a);
+            a_hi = a_hi.max(a);
+        }
+    }
+    println!("\n{:>6} {:>9} {:>6} {:>10}", "sigma", "episodes", "falls", "fall rate");
+    for (sigma, (episodes, falls, _)) in &per_sigma {
+        println!("{sigma:>6} {episodes:>9} {falls:>6} {:>9.0}%", 100.0 * *falls as f64 / (*episodes).max(1) as f64);
+    }
+    println!("\nfeature ranges (min .. max over all steps)");
+    let block = |name: &str, from: usize, to: usize| {
+        let lo = s_lo[from..to].iter().cloned().fold(f32::MAX, f32::min);
+        let hi = s_hi[from..to].iter().cloned().fold(f32::MIN, f32::max);
+        println!("  {name:<28} {lo:>8.3} .. {hi:>8.3}");
+    };
+    block("root height (m)", 2, 3);
+    block("root velocity (m/s)", offset::ROOT_VEL, offset::ROOT_ROT);
+    block("root rotation (rotvec)", offset::ROOT_ROT, offset::BODY_POS);
+    block("body positions (m)", offset::BODY_POS, offset::BODY_VEL);
+    block("body velocities (m/s)", offset::BODY_VEL, offset::END_ROT);
+    block("hand/ankle rotations", offset::END_ROT, STATE_DIM);
+    println!("  {:<28} {a_lo:>8.3} .. {a_hi:>8.3}", format!("actions ({NUM_DOFS}, normalised)"));
+    Chart::new("state coverage: root speed", "root speed (m/s)", "fraction of steps")
+        .series(Series::line("root speed", histogram(&speeds, 0.0, 3.0, 30)))
+        .save(&dir.join("coverage_root_speed"))?;
+    Chart::new("state coverage: hand height", "hand height above ground (m)", "fraction of hand samples")
+        .series(Series::line("hands", histogram(&hands, 0.0, 2.0, 40)))
+        .save(&dir.join("coverage_hand_height"))?;
+    println!("\nwrote coverage_root_speed and coverage_hand_height (.png, .svg) in {}", dir.display());
+    Ok(())
+}

@@ -1,0 +1,159 @@
+//! Noise-augmented rollouts of a tracking expert (PDP style, paper section III-E): execute a
+//! noisy action but record the expert's clean action for the state reached.
+//!
+//! The noise is added where the paper adds it, to the expert policy's own action: here the
+//! residual `u` around the reference (`action_scale` = 0.15 rad per unit), as BeyondMimic's
+//! policies output joint offsets of about 0.2 rad per unit. Adding sigma = 0.12 to the
+//! environment's normalised action instead would mean 0.12-0.3 rad per joint (its scale spans
+//! each joint's whole range), several times the paper's perturbation. Both the clean and the
+//! executed action are stored in the environment's normalised action space.
+
+use crate::DataError;
+use crate::format::Shard;
+use flowmimic_geom::heading;
+use flowmimic_motion::Clip;
+use flowmimic_sim::{Humanoid, NUM_DOFS, STATE_DIM};
+use flowmimic_track::TrackConfig;
+use flowmimic_track::ppo::Policy;
+use flowmimic_track::task::{Ending, OBS_DIM, Reference, Tracker};
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+use rand_distr::{Distribution, Normal};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::sync::Arc;
+
+/// Collection settings.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CollectConfig {
+    /// (sigma, environments): the paper's allocation, 40 rollouts per clip.
+    pub noise: Vec<(f32, usize)>,
+    /// Steps per rollout; 0 means as long as the clip.
+    pub rollout_steps: usize,
+    pub seed: u64,
+}
+
+impl Default for CollectConfig {
+    fn default() -> Self {
+        Self { noise: vec![(0.12, 16), (0.16, 12), (0.24, 6), (0.36, 6)], rollout_steps: 0, seed: 0 }
+    }
+}
+
+/// What a collection did.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct CollectStats {
+    pub steps: usize,
+    pub seconds: f64,
+    /// (sigma, episodes, falls).
+    pub falls: Vec<(f32, usize, usize)>,
+}
+
+/// Per-environment buffer; concatenated afterwards so each rollout is contiguous.
+struct Lane {
+    tracker: Tracker,
+    rng: StdRng,
+    sigma: f32,
+    shard: Shard,
+    episodes: usize,
+    falls: usize,
+}
+
+/// Rolls `expert` out on `clip` with the configured noise; one lane per environment, all
+/// lanes stepped in parallel with one batched expert forward pass per step.
+pub fn collect(
+    humanoid: &Arc<Humanoid>,
+    clip: &Clip,
+    expert: &Policy,
+    expert_cfg: &TrackConfig,
+    cfg: &CollectConfig,
+) -> Result<(Shard, CollectStats), DataError> {
+    let reference = Reference::new(clip.clone());
+    let steps = if cfg.rollout_steps == 0 { clip.len() - 1 } else { cfg.rollout_steps };
+    // No pushes: the action noise is the perturbation.
+    let run_cfg = TrackConfig { push_max: 0.0, ..expert_cfg.clone() };
+    let mut lanes: Vec<Lane> = cfg
+        .noise
+        .iter()
+        .flat_map(|&(sigma, count)| std::iter::repeat_n(sigma, count))
+        .enumerate()
+        .map(|(i, sigma)| Lane {
+            tracker: Tracker::new(humanoid),
+            rng: StdRng::seed_from_u64(cfg.seed.wrapping_mul(7919).wrapping_add(i as u64)),
+            sigma,
+            shard: Shard::default(),
+            episodes: 1,
+            falls: 0,
+        })
+        .collect();
+    if lanes.is_empty() {
+        return Err(DataError::Invalid("collect.noise allocates no environments".into()));
+    }
+    for lane in &mut lanes {
+        lane.tracker.reset(&reference, 0, &run_cfg, &mut lane.rng)?;
+    }
+    let n = lanes.len();
+    let started = std::time::Instant::now();
+    let mut obs = vec![0.0f32; n * OBS_DIM];
+    for step in 0..steps {
+        lanes.par_iter().zip(obs.par_chunks_mut(OBS_DIM)).for_each(|(l, o)| l.tracker.observe(&reference, o));
+        let u = expert.act(&obs, n);
+        let last = step + 1 == steps;
+        let endings: Vec<Result<(), DataError>> = lanes
+            .par_iter_mut()
+            .zip(u.par_chunks(NUM_DOFS))
+            .map(|(lane, u)| {
+                let clean = lane.tracker.action(&reference, u, &run_cfg);
+                let noise = Normal::new(0.0, lane.sigma)
+                    .map_err(|e| DataError::Invalid(format!("sigma {}: {e}", lane.sigma)))?;
+                let noisy_u: Vec<f32> = u.iter().map(|x| x + noise.sample(&mut lane.rng)).collect();
+                let noisy = lane.tracker.action(&reference, &noisy_u, &run_cfg);
+                let env = lane.tracker.env();
+                let k = env.bodies();
+                let root = k.pos[0];
+                let s = &mut lane.shard;
+                s.state.extend_from_slice(&k.state());
+                s.action.extend_from_slice(&clean);
+                s.noisy_action.extend_from_slice(&noisy);
+                s.root_pose.extend_from_slice(&[root.x as f32, root.y as f32, heading(k.rot[0]) as f32]);
+                s.sigma.push(lane.sigma);
+                s.frame.push(lane.tracker.frame as u32);
+                let ending = lane.tracker.step_action(&reference, &noisy, &run_cfg, &mut lane.rng);
+                let done = ending != Ending::None || last;
+                s.done.push(u8::from(done));
+                if matches!(ending, Ending::Failed | Ending::Diverged) {
+                    lane.falls += 1;
+                }
+                if done && !last {
+                    lane.episodes += 1;
+                    lane.tracker.reset(&reference, 0, &run_cfg, &mut lane.rng)?;
+                }
+                Ok(())
+            })
+            .collect();
+        endings.into_iter().collect::<Result<(), _>>()?;
+    }
+    let mut stats = CollectStats { steps: n * steps, seconds: started.elapsed().as_secs_f64(), falls: Vec::new() };
+    for &(sigma, _) in &cfg.noise {
+        let group = lanes.iter().filter(|l| l.sigma == sigma);
+        let (episodes, falls) = group.fold((0, 0), |(e, f), l| (e + l.episodes, f + l.falls));
+        stats.falls.push((sigma, episodes, falls));
+    }
+    let mut shard = Shard::default();
+    for lane in lanes {
+        debug_assert_eq!(lane.shard.state.len(), steps * STATE_DIM);
+        shard.extend_lane(lane.shard);
+    }
+    // Rollout ids: one per episode, in order.
+    let mut id = 0;
+    shard.rollout = shard
+        .done
+        .iter()
+        .map(|&d| {
+            let this = id;
+            id += u32::from(d);
+            this
+        })
+        .collect();
+    Ok((shard, stats))
+}

@@ -1,0 +1,133 @@
+//! Training windows: history `O_t = [s_{t-N}, a_{t-N}, ..., s_t]` and future
+//! `tau_t = [a_t, s_{t+1}, a_{t+1}, ..., s_{t+H}, a_{t+H}]` (DESIGN.md 2), with every state's
+//! global part (root position, velocity, rotation) re-expressed in the character frame of
+//! step t, its local part as stored. Windows never cross an episode boundary.
+
+use crate::format::Shard;
+use flowmimic_geom::{DVec3, from_rotvec, rotvec, yaw_quat};
+use flowmimic_sim::state::offset;
+use flowmimic_sim::{NUM_DOFS, STATE_DIM};
+use serde::{Deserialize, Serialize};
+
+/// History length N and horizon H.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct WindowSpec {
+    pub history: usize,
+    pub horizon: usize,
+}
+
+impl WindowSpec {
+    /// States in a window: N + 1 in the history, H in the future.
+    pub fn states(&self) -> usize {
+        self.history + 1 + self.horizon
+    }
+
+    /// Actions in a window: N in the history, H + 1 in the future.
+    pub fn actions(&self) -> usize {
+        self.history + 1 + self.horizon
+    }
+}
+
+/// One window: `states[k]` is s_{t-N+k}, `actions[k]` is a_{t-N+k}, both for k in
+/// 0..N+1+H; the history is states 0..=N and actions 0..N, the future the rest.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Window {
+    pub states: Vec<f32>,
+    pub actions: Vec<f32>,
+}
+
+/// Re-expresses the 165-d state of step k (stored in its own frame) in the frame of step t,
+/// given both steps' root poses (x, y, heading).
+pub fn reexpress(state: &[f32], pose_k: [f32; 3], pose_t: [f32; 3], out: &mut [f32]) {
+    out.copy_from_slice(state);
+    let turn = yaw_quat(f64::from(pose_k[2] - pose_t[2]));
+    let back = yaw_quat(-f64::from(pose_t[2]));
+    let d = back * DVec3::new(f64::from(pose_k[0] - pose_t[0]), f64::from(pose_k[1] - pose_t[1]), 0.0);
+    out[offset::ROOT_POS] = d.x as f32;
+    out[offset::ROOT_POS + 1] = d.y as f32;
+    let v = |i: usize| DVec3::new(state[i].into(), state[i + 1].into(), state[i + 2].into());
+    let vel = turn * v(offset::ROOT_VEL);
+    let rot = rotvec(turn * from_rotvec(v(offset::ROOT_ROT)));
+    for (i, x) in [vel, rot]
+        .iter()
+        .zip([offset::ROOT_VEL, offset::ROOT_ROT])
+        .flat_map(|(x, at)| (0..3).map(move |j| (at + j, x[j])))
+    {
+        out[i] = x as f32;
+    }
+}
+
+/// Start indices `t` of all windows of a shard (rows where the whole window lies inside one
+/// episode).
+pub fn window_starts(shard: &Shard, spec: WindowSpec) -> Vec<usize> {
+    let n = shard.steps();
+    let (h, f) = (spec.history, spec.horizon);
+    (h..n.saturating_sub(f))
+        .filter(|&t| {
+            // No episode ends inside [t - N, t + H - 1]; the rollout id is constant across it.
+            shard.rollout[t - h] == shard.rollout[t + f] && shard.done[t - h..t + f].iter().all(|&d| d == 0)
+        })
+        .collect()
+}
+
+/// The window at `t`.
+pub fn window(shard: &Shard, spec: WindowSpec, t: usize) -> Window {
+    let pose = |k: usize| [shard.root_pose[3 * k], shard.root_pose[3 * k + 1], shard.root_pose[3 * k + 2]];
+    let first = t - spec.history;
+    let count = spec.states();
+    let mut states = vec![0.0; count * STATE_DIM];
+    for (j, out) in states.chunks_mut(STATE_DIM).enumerate() {
+        let k = first + j;
+        reexpress(&shard.state[k * STATE_DIM..(k + 1) * STATE_DIM], pose(k), pose(t), out);
+    }
+    let actions = shard.action[first * NUM_DOFS..(first + count) * NUM_DOFS].to_vec();
+    Window { states, actions }
+}
+
+/// Per-slot feature statistics over windows: mean and standard deviation of each state slot
+/// (N + 1 + H of 165) and action slot (N + 1 + H of 69), floored at 1e-3 so constant features
+/// (the current step's root x, y) do not divide by zero.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Stats {
+    pub spec: WindowSpec,
+    pub state_mean: Vec<f32>,
+    pub state_std: Vec<f32>,
+    pub action_mean: Vec<f32>,
+    pub action_std: Vec<f32>,
+    pub windows: usize,
+}
+
+impl Stats {
+    pub fn compute<'a>(spec: WindowSpec, shards: impl Iterator<Item = &'a Shard>) -> Self {
+        let (ns, na) = (spec.states() * STATE_DIM, spec.actions() * NUM_DOFS);
+        let (mut s1, mut s2, mut a1, mut a2) = (vec![0f64; ns], vec![0f64; ns], vec![0f64; na], vec![0f64; na]);
+        let mut count = 0usize;
+        for shard in shards {
+            for t in window_starts(shard, spec) {
+                let w = window(shard, spec, t);
+                for (i, &x) in w.states.iter().enumerate() {
+                    s1[i] += f64::from(x);
+                    s2[i] += f64::from(x) * f64::from(x);
+                }
+                for (i, &x) in w.actions.iter().enumerate() {
+                    a1[i] += f64::from(x);
+                    a2[i] += f64::from(x) * f64::from(x);
+                }
+                count += 1;
+            }
+        }
+        let n = count.max(1) as f64;
+        let finish = |sum: &[f64], sq: &[f64]| -> (Vec<f32>, Vec<f32>) {
+            sum.iter()
+                .zip(sq)
+                .map(|(s, q)| {
+                    let m = s / n;
+                    (m as f32, ((q / n - m * m).max(0.0).sqrt().max(1e-3)) as f32)
+                })
+                .unzip()
+        };
+        let (state_mean, state_std) = finish(&s1, &s2);
+        let (action_mean, action_std) = finish(&a1, &a2);
+        Self { spec, state_mean, state_std, action_mean, action_std, windows: count }
+    }
+}
