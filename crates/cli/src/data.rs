@@ -21,33 +21,34 @@ pub enum DatasetCommand {
     },
 }
 
-/// `flowmimic collect`: one expert on its clip, appended to the dataset in `out`.
-pub fn run_collect(
+/// `flowmimic collect`: every expert run on its clip, each appended to the dataset in `out`.
+pub fn run_collect(humanoid: &Arc<Humanoid>, runs: Vec<PathBuf>, out: PathBuf, cfg: CollectConfig) -> Result<()> {
+    let mut dataset = Dataset::open_or_create(&out)?;
+    for run in &runs {
+        collect_run(humanoid, run, &mut dataset, &cfg)?;
+    }
+    println!("dataset {} now holds {} clips", out.display(), dataset.manifest.shards.len());
+    Ok(())
+}
+
+/// One run: its expert (policy.safetensors) on its clip (clip.safetensors).
+fn collect_run(
     humanoid: &Arc<Humanoid>,
-    expert: PathBuf,
-    clip: Option<PathBuf>,
-    out: PathBuf,
-    cfg: CollectConfig,
+    run: &std::path::Path,
+    dataset: &mut Dataset,
+    cfg: &CollectConfig,
 ) -> Result<()> {
+    let expert = run.join(crate::track::RUN_POLICY);
     let ck = Checkpoint::read(&expert)?;
     let (expert_cfg, policy) = (ck.config()?, ck.policy()?);
-    let clip = crate::track::load_clip(humanoid, clip.as_deref())?;
-    if ck.meta("clip")? != clip.name {
-        anyhow::bail!(
-            "{} was trained on clip '{}', not '{}': pass its clip with --clip",
-            expert.display(),
-            ck.meta("clip")?,
-            clip.name
-        );
-    }
-    let mut dataset = Dataset::open_or_create(&out)?;
+    let clip = flowmimic_motion::Clip::load(humanoid, &run.join(crate::track::RUN_CLIP))?;
     let envs: usize = cfg.noise.iter().map(|n| n.1).sum();
     eprintln!(
         "collecting {} with {envs} noisy rollouts of {} steps",
         clip.name,
         if cfg.rollout_steps == 0 { clip.len() - 1 } else { cfg.rollout_steps }
     );
-    let (shard, stats) = collect(humanoid, &clip, &policy, &expert_cfg, &cfg)?;
+    let (shard, stats) = collect(humanoid, &clip, &policy, &expert_cfg, cfg)?;
     let info = ShardInfo {
         file: format!("{}.rollouts.safetensors", clip.name),
         clip: clip.name.clone(),
@@ -65,7 +66,6 @@ pub fn run_collect(
     for (sigma, episodes, falls) in &stats.falls {
         println!("{sigma:>6.2} {episodes:>9} {falls:>6} {:>9.0}%", 100.0 * *falls as f64 / (*episodes).max(1) as f64);
     }
-    println!("dataset {} now holds {} clips", out.display(), dataset.manifest.shards.len());
     Ok(())
 }
 

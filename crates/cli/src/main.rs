@@ -47,12 +47,10 @@ enum Command {
     /// Roll an expert out with action noise (sigma 0.12/0.16/0.24/0.36 on 16/12/6/6 envs) and
     /// add the noisy states with the clean expert actions to a dataset.
     Collect {
-        /// The expert (a run's policy.safetensors).
-        #[arg(long)]
-        expert: PathBuf,
-        /// The clip the expert tracks (default: the generated walk).
-        #[arg(long)]
-        clip: Option<PathBuf>,
+        /// Expert runs (directories written by `flowmimic track train`, holding
+        /// policy.safetensors and clip.safetensors).
+        #[arg(required = true)]
+        runs: Vec<PathBuf>,
         /// Dataset directory (created, or appended to).
         #[arg(short, long, default_value = "runs/data")]
         out: PathBuf,
@@ -118,8 +116,8 @@ fn main() {
 fn run(cli: Cli) -> Result<()> {
     let config = Config::load(&cli.settings.preset, cli.settings.config.as_deref())?;
     match cli.command {
-        Command::Collect { expert, clip, out } => {
-            data::run_collect(&Humanoid::new(config.sim)?, expert, clip, out, config.collect.clone())?
+        Command::Collect { runs, out } => {
+            data::run_collect(&Humanoid::new(config.sim)?, runs, out, config.collect.clone())?
         }
         Command::Dataset(cmd) => data::run_dataset(cmd)?,
         Command::Config => print!("{}", toml::to_string(&config)?),

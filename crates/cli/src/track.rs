@@ -13,7 +13,8 @@ use std::sync::Arc;
 #[derive(Subcommand)]
 pub enum TrackCommand {
     /// Train a PPO expert that tracks a clip (a generated 10 s straight walk by default).
-    /// Writes <out>/policy.safetensors (checkpointed atomically), log.csv and config.json.
+    /// Writes <out>/policy.safetensors (checkpointed atomically), clip.safetensors (the
+    /// reference), log.csv, config.json and learning-curve plots.
     Train {
         /// Clip file to track (`flowmimic motion import|generate` writes them).
         #[arg(long)]
@@ -35,11 +36,8 @@ pub enum TrackCommand {
     },
     /// Tracking metrics of a trained policy on its clip.
     Eval {
-        /// The policy file (policy.safetensors of a run).
-        policy: PathBuf,
-        /// The clip it tracks (default: the generated walk it was trained on).
-        #[arg(long)]
-        clip: Option<PathBuf>,
+        /// The run directory (policy.safetensors and clip.safetensors).
+        run: PathBuf,
         #[arg(long, default_value_t = 100)]
         episodes: usize,
         /// Apply the survival protocol's kicks (0-0.5 m/s every second).
@@ -47,6 +45,11 @@ pub enum TrackCommand {
         kicks: bool,
     },
 }
+
+/// The reference clip a run tracks, saved next to its policy.
+pub(crate) const RUN_CLIP: &str = "clip.safetensors";
+/// The policy of a run.
+pub(crate) const RUN_POLICY: &str = "policy.safetensors";
 
 /// Learning curves from the CSV rows: reward, episode length and tracking error.
 fn plot_curves(out: &Path, rows: &[String]) -> Result<()> {
@@ -70,7 +73,7 @@ fn plot_curves(out: &Path, rows: &[String]) -> Result<()> {
 }
 
 /// The clip a run tracks: a file, or the default generated 10 s straight walk.
-pub(crate) fn load_clip(humanoid: &Arc<Humanoid>, clip: Option<&Path>) -> Result<Clip> {
+fn load_clip(humanoid: &Arc<Humanoid>, clip: Option<&Path>) -> Result<Clip> {
     Ok(match clip {
         Some(path) => Clip::load(humanoid, path)?,
         None => {
@@ -88,7 +91,7 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
             if let Some(n) = iterations {
                 cfg.iterations = n;
             }
-            let policy_path = out.join("policy.safetensors");
+            let policy_path = out.join(RUN_POLICY);
             let log_path = out.join("log.csv");
             let mut rows: Vec<String> = Vec::new();
             let mut trainer = if resume {
@@ -115,6 +118,7 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
                 Trainer::new(humanoid, clip, cfg.clone())?
             };
             flowmimic_io::write_atomic(&out.join("config.json"), serde_json::to_string_pretty(&cfg)?.as_bytes())?;
+            trainer.reference.clip.save(&out.join(RUN_CLIP))?;
             eprintln!(
                 "tracking '{}' ({} frames) with {} envs x {} steps per iteration, policy {} parameters",
                 trainer.reference.clip.name,
@@ -161,10 +165,10 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
             plot_curves(&run, &rows)?;
             eprintln!("wrote reward, episode_length and body_error .png/.svg in {}", run.display());
         }
-        TrackCommand::Eval { policy, clip, episodes, kicks } => {
-            let ck = Checkpoint::read(&policy)?;
+        TrackCommand::Eval { run, episodes, kicks } => {
+            let ck = Checkpoint::read(&run.join(RUN_POLICY))?;
             let (cfg, policy_net) = (ck.config()?, ck.policy()?);
-            let clip = load_clip(humanoid, clip.as_deref())?;
+            let clip = Clip::load(humanoid, &run.join(RUN_CLIP))?;
             let report = evaluate(humanoid, &policy_net, &clip, &cfg, episodes.max(1), kicks, 12345)?;
             println!("{}", serde_json::to_string_pretty(&report)?);
         }
