@@ -151,8 +151,8 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
                     log.failures,
                     log.episodes,
                     log.body_pos_error,
-                    log.kl,
-                    log.learning_rate,
+                    log.update.kl,
+                    log.update.learning_rate,
                     log.steps_per_second,
                     started.elapsed().as_secs_f64()
                 );

@@ -174,7 +174,7 @@ pub fn advantages(r: &Rollout, gamma: f32, lambda: f32) -> (Vec<f32>, Vec<f32>) 
 }
 
 /// Losses and diagnostics of one update.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
 pub struct UpdateStats {
     pub surrogate: f32,
     pub value_loss: f32,

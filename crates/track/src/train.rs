@@ -181,12 +181,8 @@ pub struct IterationLog {
     pub episode_length: f32,
     /// Mean root-relative body position error, m.
     pub body_pos_error: f32,
-    pub surrogate: f32,
-    pub value_loss: f32,
-    pub entropy: f32,
-    pub kl: f32,
-    pub clip_fraction: f32,
-    pub learning_rate: f32,
+    /// Losses and diagnostics of the PPO update.
+    pub update: UpdateStats,
     pub physics_seconds: f32,
     pub network_seconds: f32,
     pub update_seconds: f32,
@@ -206,12 +202,12 @@ impl IterationLog {
             self.failures,
             self.episode_length,
             self.body_pos_error,
-            self.surrogate,
-            self.value_loss,
-            self.entropy,
-            self.kl,
-            self.clip_fraction,
-            self.learning_rate,
+            self.update.surrogate,
+            self.update.value_loss,
+            self.update.entropy,
+            self.update.kl,
+            self.update.clip_fraction,
+            self.update.learning_rate,
             self.physics_seconds,
             self.network_seconds,
             self.update_seconds,
@@ -383,12 +379,7 @@ impl Trainer {
         log.mean_reward = (reward_sum / n) as f32;
         log.body_pos_error = (error_sum / n) as f32;
         log.episode_length = if log.episodes > 0 { ended_lengths as f32 / log.episodes as f32 } else { 0.0 };
-        log.surrogate = stats.surrogate;
-        log.value_loss = stats.value_loss;
-        log.entropy = stats.entropy;
-        log.kl = stats.kl;
-        log.clip_fraction = stats.clip_fraction;
-        log.learning_rate = stats.learning_rate;
+        log.update = stats;
         log.physics_seconds = physics as f32;
         log.network_seconds = network as f32;
         log.update_seconds = t2.elapsed().as_secs_f32();

@@ -66,7 +66,7 @@ fn training_checkpoints_resumes_and_refuses_bad_checkpoints() {
     let mut trainer = Trainer::new(&h, clip.clone(), tiny()).unwrap();
     for _ in 0..2 {
         let log = trainer.iterate().unwrap();
-        assert!(log.mean_reward.is_finite() && log.value_loss.is_finite() && log.kl.is_finite());
+        assert!(log.mean_reward.is_finite() && log.update.value_loss.is_finite() && log.update.kl.is_finite());
     }
     trainer.save(&path).unwrap();
     let resumed = Trainer::resume(&h, clip.clone(), tiny(), &path).unwrap();
