@@ -20,6 +20,7 @@
 //! rewrites only the manifest (atomically).
 
 use crate::DataError;
+use flowmimic_io::le;
 use flowmimic_sim::skeleton::{BODY_NAMES, hinge_names};
 use flowmimic_sim::state::state_feature_names;
 use flowmimic_sim::{CONTROL_HZ, NUM_DOFS, STATE_DIM};
@@ -106,8 +107,7 @@ impl Shard {
     }
 
     fn bytes(&self) -> Result<Vec<u8>, DataError> {
-        let le32 = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
-        let leu = |v: &[u32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+        let (le32, leu) = (|v: &[f32]| le::bytes(v.iter().copied()), |v: &[u32]| le::bytes(v.iter().copied()));
         let s = self.steps();
         let tensors: Vec<(&str, Dtype, Vec<usize>, Vec<u8>)> = vec![
             ("state", Dtype::F32, vec![s, STATE_DIM], le32(&self.state)),
@@ -148,10 +148,8 @@ impl Shard {
             }
             Ok((t.data().to_vec(), shape[0]))
         };
-        let f32s =
-            |b: Vec<u8>| b.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().expect("4"))).collect::<Vec<f32>>();
-        let u32s =
-            |b: Vec<u8>| b.chunks_exact(4).map(|c| u32::from_le_bytes(c.try_into().expect("4"))).collect::<Vec<u32>>();
+        let f32s = |b: Vec<u8>| le::values::<f32>(&b);
+        let u32s = |b: Vec<u8>| le::values::<u32>(&b);
         let (state, s) = get("state", Dtype::F32, STATE_DIM)?;
         let shard = Shard {
             state: f32s(state),

@@ -80,3 +80,52 @@ mod tests {
         fs::remove_dir_all(&dir).unwrap();
     }
 }
+
+/// Little-endian byte layouts of numeric slices, as safetensors stores tensors.
+pub mod le {
+    /// Implemented for the element types our files store.
+    pub trait Scalar: Copy {
+        const SIZE: usize;
+        fn write(self, out: &mut Vec<u8>);
+        fn read(bytes: &[u8]) -> Self;
+    }
+
+    macro_rules! scalar {
+        ($($t:ty),*) => {$(
+            impl Scalar for $t {
+                const SIZE: usize = std::mem::size_of::<$t>();
+                fn write(self, out: &mut Vec<u8>) {
+                    out.extend_from_slice(&self.to_le_bytes());
+                }
+                fn read(bytes: &[u8]) -> Self {
+                    <$t>::from_le_bytes(bytes.try_into().expect("chunk of the scalar's size"))
+                }
+            }
+        )*};
+    }
+    scalar!(f32, f64, u32);
+
+    /// The bytes of `values`.
+    pub fn bytes<T: Scalar>(values: impl IntoIterator<Item = T>) -> Vec<u8> {
+        let mut out = Vec::new();
+        values.into_iter().for_each(|v| v.write(&mut out));
+        out
+    }
+
+    /// The values in `bytes` (a trailing partial value is ignored).
+    pub fn values<T: Scalar>(bytes: &[u8]) -> Vec<T> {
+        bytes.chunks_exact(T::SIZE).map(T::read).collect()
+    }
+
+    #[cfg(test)]
+    mod tests {
+        #[test]
+        fn round_trips() {
+            let xs = [1.5f32, -2.0, f32::MAX];
+            assert_eq!(super::values::<f32>(&super::bytes(xs)), xs);
+            let ys = [0.1f64, 1e300];
+            assert_eq!(super::values::<f64>(&super::bytes(ys)), ys);
+            assert_eq!(super::bytes([1u32]), vec![1, 0, 0, 0]);
+        }
+    }
+}

@@ -25,6 +25,7 @@
 use crate::MotionError;
 use crate::retarget::quat_of;
 use flowmimic_geom::{DQuat, DVec3, rotvec, yaw_quat};
+use flowmimic_io::le;
 use flowmimic_sim::skeleton::{BODY_NAMES, NUM_BODIES, body, hinge_names};
 use flowmimic_sim::{BodyKinematics, CONTROL_HZ, Humanoid};
 use safetensors::{Dtype, SafeTensors, tensor::TensorView};
@@ -220,8 +221,8 @@ impl Clip {
     /// Writes the clip atomically (see the module docs for the format).
     pub fn save(&self, path: &Path) -> Result<(), MotionError> {
         let n = self.len();
-        let f64_bytes = |rows: &[Vec<f64>]| rows.iter().flatten().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>();
-        let f32_bytes = |vals: Vec<f64>| vals.into_iter().flat_map(|v| (v as f32).to_le_bytes()).collect::<Vec<u8>>();
+        let f64_bytes = |rows: &[Vec<f64>]| le::bytes(rows.iter().flatten().copied());
+        let f32_bytes = |vals: Vec<f64>| le::bytes(vals.into_iter().map(|v| v as f32));
         let by_body = |f: &dyn Fn(&BodyKinematics, usize) -> Vec<f64>| {
             f32_bytes(self.bodies.iter().flat_map(|k| (0..NUM_BODIES).flat_map(|b| f(k, b))).collect())
         };
@@ -286,8 +287,7 @@ impl Clip {
                     t.shape()
                 )));
             }
-            let vals: Vec<f64> =
-                t.data().chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes"))).collect();
+            let vals: Vec<f64> = le::values(t.data());
             if let Some(i) = vals.iter().position(|v| !v.is_finite()) {
                 return Err(bad(format!("tensor '{name}' has a non-finite value at flat index {i}")));
             }
@@ -315,7 +315,7 @@ impl Clip {
         let worst = stored
             .data()
             .chunks_exact(4)
-            .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")) as f64)
+            .map(|c| f64::from(<f32 as le::Scalar>::read(c)))
             .zip(clip.bodies.iter().flat_map(|k| k.pos.iter().flat_map(|p| p.to_array())))
             .map(|(a, b)| (a - b).abs())
             .fold(0.0, f64::max);

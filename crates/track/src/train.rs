@@ -5,6 +5,7 @@ use crate::TrackError;
 use crate::mlp::Adam;
 use crate::ppo::{self, Normalizer, Optimiser, Policy, Rollout, UpdateStats};
 use crate::task::{Ending, OBS_DIM, Reference, RewardTerms, Tracker};
+use flowmimic_io::le;
 use flowmimic_motion::Clip;
 use flowmimic_sim::{CONTROL_HZ, Humanoid, NUM_DOFS};
 use rand::rngs::StdRng;
@@ -389,8 +390,8 @@ impl Trainer {
 
     /// Writes the policy, optimiser state and counters atomically.
     pub fn save(&self, path: &Path) -> Result<(), TrackError> {
-        let f32s = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
-        let f64s = |v: &[f64]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+        let f32s = |v: &[f32]| le::bytes(v.iter().copied());
+        let f64s = |v: &[f64]| le::bytes(v.iter().copied());
         let p = &self.policy;
         let tensors: Vec<(&str, Dtype, Vec<u8>)> = vec![
             ("actor", Dtype::F32, f32s(&p.actor.params())),
@@ -521,11 +522,7 @@ impl Checkpoint {
     }
 
     fn f32s(&self, name: &str, len: usize) -> Result<Vec<f32>, TrackError> {
-        let v: Vec<f32> = self
-            .raw(name, Dtype::F32, len)?
-            .chunks_exact(4)
-            .map(|c| f32::from_le_bytes(c.try_into().expect("4")))
-            .collect();
+        let v: Vec<f32> = le::values(&self.raw(name, Dtype::F32, len)?);
         if v.iter().any(|x| !x.is_finite()) {
             return Err(self.bad(format!("tensor '{name}' holds non-finite values")));
         }
@@ -533,11 +530,7 @@ impl Checkpoint {
     }
 
     fn f64s(&self, name: &str, len: usize) -> Result<Vec<f64>, TrackError> {
-        Ok(self
-            .raw(name, Dtype::F64, len)?
-            .chunks_exact(8)
-            .map(|c| f64::from_le_bytes(c.try_into().expect("8")))
-            .collect())
+        Ok(le::values(&self.raw(name, Dtype::F64, len)?))
     }
 
     /// The config stored with the policy.
