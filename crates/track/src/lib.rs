@@ -1,12 +1,10 @@
 //! PPO tracking experts: a policy per clip (or one for several clips) that makes the
 //! simulated humanoid follow the reference, trained with PPO as BeyondMimic does.
 //!
-//! - [`mlp`]: the networks (hand-written MLP, Adam);
 //! - [`ppo`]: rollouts, GAE, the clipped PPO update, observation normalisation;
 //! - [`task`]: observations, rewards, terminations, resets and pushes;
 //! - [`train`]: the training loop, logs, checkpoints, resume and evaluation.
 
-pub mod mlp;
 pub mod ppo;
 pub mod task;
 pub mod train;

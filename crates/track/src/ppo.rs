@@ -4,7 +4,7 @@
 //! Gradients of the losses with respect to the network outputs are written out analytically.
 
 use crate::TrackConfig;
-use crate::mlp::{Adam, Mlp};
+use flowmimic_nn::{Adam, Mlp};
 use rand::Rng;
 use rand::seq::SliceRandom;
 use rand_distr::{Distribution, StandardNormal};

@@ -2,11 +2,11 @@
 //! and evaluation of tracking quality.
 
 use crate::TrackError;
-use crate::mlp::Adam;
 use crate::ppo::{self, Normalizer, Optimiser, Policy, Rollout, UpdateStats};
 use crate::task::{Ending, OBS_DIM, Reference, RewardTerms, Tracker};
 use flowmimic_io::le;
 use flowmimic_motion::Clip;
+use flowmimic_nn::Adam;
 use flowmimic_sim::{CONTROL_HZ, Humanoid, NUM_DOFS};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};

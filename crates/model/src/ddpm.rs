@@ -1,0 +1,113 @@
+//! The DDPM baseline (Ho et al. 2020) with the cosine schedule (Nichol & Dhariwal 2021):
+//! `x_k = sqrt(abar_k) x_0 + sqrt(1 - abar_k) eps`, the network predicts `eps` (documented
+//! choice: epsilon prediction, as BeyondMimic and Diffusion Policy), and sampling at any NFE
+//! respaces the schedule in closed form: for chosen steps `k_1 < ... < k_M = T`,
+//! `abar'_i = abar_{k_i}` and `beta'_i = 1 - abar_{k_i} / abar_{k_{i-1}}` (with `abar_{k_0} = 1`).
+
+use crate::{Guidance, Network, TrainingBatch};
+use rand::Rng;
+use rand_distr::{Distribution, StandardNormal};
+
+/// Cumulative `abar_k` for k = 0..=T (abar_0 = 1) of the cosine schedule, betas capped at 0.999.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Schedule {
+    pub alpha_bar: Vec<f64>,
+}
+
+impl Schedule {
+    pub fn cosine(steps: usize) -> Self {
+        let f = |k: f64| (((k / steps as f64) + 0.008) / 1.008 * std::f64::consts::FRAC_PI_2).cos().powi(2);
+        let mut alpha_bar = vec![1.0];
+        for k in 1..=steps {
+            let beta = (1.0 - f(k as f64) / f((k - 1) as f64)).min(0.999);
+            alpha_bar.push(alpha_bar[k - 1] * (1.0 - beta));
+        }
+        Self { alpha_bar }
+    }
+
+    /// Training steps T.
+    pub fn steps(&self) -> usize {
+        self.alpha_bar.len() - 1
+    }
+
+    /// The `nfe` steps sampling visits, evenly spaced from T down, always including T.
+    pub fn respaced_steps(&self, nfe: usize) -> Vec<usize> {
+        let t = self.steps();
+        let m = nfe.clamp(1, t);
+        (1..=m).map(|i| ((i * t) as f64 / m as f64).round() as usize).collect()
+    }
+
+    /// `beta'` of the respaced schedule, aligned with `respaced_steps`.
+    pub fn respaced_betas(&self, steps: &[usize]) -> Vec<f64> {
+        let mut prev = 1.0;
+        steps
+            .iter()
+            .map(|&k| {
+                let beta = 1.0 - self.alpha_bar[k] / prev;
+                prev = self.alpha_bar[k];
+                beta
+            })
+            .collect()
+    }
+}
+
+/// A training batch: `k ~ U{1..T}`, noise level `t = k / T`, target `eps`.
+pub fn training_batch(schedule: &Schedule, x0: &[f32], dim: usize, rng: &mut impl Rng) -> TrainingBatch {
+    let n = x0.len() / dim;
+    let steps = schedule.steps();
+    let ks: Vec<usize> = (0..n).map(|_| rng.random_range(1..=steps)).collect();
+    let mut x = vec![0.0; x0.len()];
+    let mut target = vec![0.0; x0.len()];
+    for i in 0..x0.len() {
+        let ab = schedule.alpha_bar[ks[i / dim]];
+        let eps: f32 = StandardNormal.sample(rng);
+        x[i] = (ab.sqrt() as f32) * x0[i] + ((1.0 - ab).sqrt() as f32) * eps;
+        target[i] = eps;
+    }
+    TrainingBatch { x, t: ks.iter().map(|&k| k as f32 / steps as f32).collect(), target }
+}
+
+/// Ancestral sampling with `nfe` network evaluations from noise `x_t` (n x dim). The clean
+/// prediction `x_0 = (x_k - sqrt(1 - abar) eps) / sqrt(abar)` is clipped to `[-clip, clip]`
+/// (as Diffusion Policy does) and, with guidance, moved by `-w grad G(x_0)` before the
+/// posterior step.
+#[allow(clippy::too_many_arguments)]
+pub fn sample(
+    net: &dyn Network,
+    schedule: &Schedule,
+    cond: &[f32],
+    x_t: Vec<f32>,
+    n: usize,
+    nfe: usize,
+    clip: f32,
+    guidance: Option<&Guidance>,
+    rng: &mut impl Rng,
+) -> Vec<f32> {
+    let steps = schedule.respaced_steps(nfe);
+    let betas = schedule.respaced_betas(&steps);
+    let total = schedule.steps() as f32;
+    let mut x = x_t;
+    for (i, (&k, &beta)) in steps.iter().zip(&betas).enumerate().rev() {
+        let step = steps.len() - 1 - i; // 0 for the first (noisiest) solver step
+        let ab = schedule.alpha_bar[k];
+        let ab_prev = if i == 0 { 1.0 } else { schedule.alpha_bar[steps[i - 1]] };
+        let eps = net.predict(&x, &vec![k as f32 / total; n], cond, n);
+        let (sa, s1a) = (ab.sqrt() as f32, (1.0 - ab).sqrt() as f32);
+        let mut x0: Vec<f32> = x.iter().zip(&eps).map(|(x, e)| ((x - s1a * e) / sa).clamp(-clip, clip)).collect();
+        if let Some(delta) = guidance.and_then(|g| g.nudge(step, &x0, n, 1.0)) {
+            x0.iter_mut().zip(delta).for_each(|(x, d)| *x -= d);
+        }
+        if i == 0 {
+            return x0;
+        }
+        // Posterior q(x_prev | x_k, x_0) of the respaced chain.
+        let c0 = (ab_prev.sqrt() * beta / (1.0 - ab)) as f32;
+        let ck = ((1.0 - beta).sqrt() * (1.0 - ab_prev) / (1.0 - ab)) as f32;
+        let sd = (beta * (1.0 - ab_prev) / (1.0 - ab)).sqrt() as f32;
+        for (x, x0) in x.iter_mut().zip(&x0) {
+            let z: f32 = StandardNormal.sample(rng);
+            *x = c0 * x0 + ck * *x + sd * z;
+        }
+    }
+    x
+}

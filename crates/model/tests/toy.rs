@@ -1,0 +1,188 @@
+//! The generative math on a 2-D mixture of two Gaussians, with the same small MLP, data, seed
+//! and step budget for Flow Matching and DDPM.
+
+use flowmimic_model::ddpm::{self, Schedule};
+use flowmimic_model::fm::{self, Solver, TimeDistribution};
+use flowmimic_model::{Guidance, Network, TrainingBatch};
+use flowmimic_nn::{Adam, Mlp};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, StandardNormal};
+
+const DIM: usize = 2;
+const MODE: f32 = 2.0;
+const SPREAD: f32 = 0.3;
+
+fn data(n: usize, rng: &mut impl Rng) -> Vec<f32> {
+    (0..n)
+        .flat_map(|_| {
+            let side = if rng.random_bool(0.5) { MODE } else { -MODE };
+            let (a, b): (f32, f32) = (StandardNormal.sample(rng), StandardNormal.sample(rng));
+            [side + SPREAD * a, SPREAD * b]
+        })
+        .collect()
+}
+
+fn noise(n: usize, rng: &mut impl Rng) -> Vec<f32> {
+    (0..n * DIM).map(|_| StandardNormal.sample(rng)).collect()
+}
+
+/// An MLP on [x, time features].
+struct Toy(Mlp);
+
+fn features(x: &[f32], t: &[f32], n: usize) -> Vec<f32> {
+    (0..n)
+        .flat_map(|i| {
+            let s = t[i];
+            let mut row = x[i * DIM..(i + 1) * DIM].to_vec();
+            row.push(s);
+            for f in [1.0f32, 2.0, 4.0] {
+                let a = std::f32::consts::TAU * f * s;
+                row.extend([a.sin(), a.cos()]);
+            }
+            row
+        })
+        .collect()
+}
+
+const FEATURES: usize = DIM + 7;
+
+impl Network for Toy {
+    fn dim(&self) -> usize {
+        DIM
+    }
+    fn predict(&self, x: &[f32], t: &[f32], _cond: &[f32], n: usize) -> Vec<f32> {
+        self.0.predict(&features(x, t, n), n)
+    }
+}
+
+fn train(batch: impl Fn(&[f32], &mut StdRng) -> TrainingBatch, seed: u64) -> Toy {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let mut net = Mlp::new(&[FEATURES, 64, 64, DIM], 1.0, &mut rng);
+    let mut adam = Adam::new(net.num_params());
+    let n = 256;
+    let mut first = 0.0;
+    let mut last = 0.0;
+    for step in 0..2500 {
+        let x1 = data(n, &mut rng);
+        let b = batch(&x1, &mut rng);
+        let tape = net.forward(&features(&b.x, &b.t, n), n);
+        let g: Vec<f32> = tape.output.iter().zip(&b.target).map(|(p, t)| 2.0 * (p - t) / (n * DIM) as f32).collect();
+        let loss: f32 = tape.output.iter().zip(&b.target).map(|(p, t)| (p - t).powi(2)).sum::<f32>() / (n * DIM) as f32;
+        if step < 50 {
+            first += loss / 50.0;
+        }
+        if step >= 2450 {
+            last += loss / 50.0;
+        }
+        let mut grads = vec![0.0; net.num_params()];
+        net.backward(&tape, &g, &mut grads);
+        let mut p = net.params();
+        adam.step(&mut p, &grads, 2e-3);
+        net.set_params(&p);
+    }
+    assert!(last < 0.8 * first, "training loss fell from {first} to {last}");
+    Toy(net)
+}
+
+/// Means and variances of the two coordinates.
+fn moments(x: &[f32]) -> [f64; 4] {
+    let n = (x.len() / DIM) as f64;
+    let col = |d: usize| x.iter().skip(d).step_by(DIM).map(|&v| f64::from(v)).collect::<Vec<_>>();
+    let stats = |v: Vec<f64>| {
+        let m = v.iter().sum::<f64>() / n;
+        (m, v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / n)
+    };
+    let ((mx, vx), (my, vy)) = (stats(col(0)), stats(col(1)));
+    [mx, vx, my, vy]
+}
+
+/// Moment and mode errors of samples: |mean| + relative variance errors + mass off the modes.
+fn sample_error(x: &[f32]) -> f64 {
+    let n = (x.len() / DIM) as f64;
+    let col = |d: usize| x.iter().skip(d).step_by(DIM).map(|&v| f64::from(v)).collect::<Vec<_>>();
+    let (a, b) = (col(0), col(1));
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / n;
+    let var = |v: &[f64]| {
+        let m = mean(v);
+        v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / n
+    };
+    let (vx, vy) = (f64::from(MODE * MODE + SPREAD * SPREAD), f64::from(SPREAD * SPREAD));
+    let near =
+        a.iter().zip(&b).filter(|(x, y)| (x.abs() - f64::from(MODE)).hypot(**y) < 3.0 * f64::from(SPREAD)).count()
+            as f64
+            / n;
+    mean(&a).abs() + mean(&b).abs() + (var(&a) / vx - 1.0).abs() + (var(&b) / vy - 1.0).abs() + (1.0 - near)
+}
+
+#[test]
+fn respaced_schedule_matches_the_closed_form() {
+    let s = Schedule::cosine(1000);
+    for nfe in [1, 2, 5, 10, 20, 1000] {
+        let steps = s.respaced_steps(nfe);
+        assert_eq!(steps.len(), nfe);
+        assert_eq!(*steps.last().unwrap(), 1000);
+        let betas = s.respaced_betas(&steps);
+        let mut cum = 1.0;
+        for (&k, b) in steps.iter().zip(&betas) {
+            cum *= 1.0 - b;
+            assert!(
+                (cum - s.alpha_bar[k]).abs() < 1e-12,
+                "nfe {nfe}: prod(1 - beta') = {cum} vs abar_{k} = {}",
+                s.alpha_bar[k]
+            );
+        }
+    }
+    // Respacing to every step gives back the original betas.
+    let all = s.respaced_steps(1000);
+    assert_eq!(all, (1..=1000).collect::<Vec<_>>());
+    assert!(s.alpha_bar[1000] < 1e-4 && s.alpha_bar[1] > 0.999);
+}
+
+#[test]
+fn fm_and_ddpm_learn_a_mixture_and_fm_degrades_less_at_low_nfe() {
+    let schedule = Schedule::cosine(1000);
+    let fm_net = train(|x1, rng| fm::training_batch(x1, DIM, TimeDistribution::Uniform, rng), 7);
+    let dd_net = train(|x0, rng| ddpm::training_batch(&schedule, x0, DIM, rng), 7);
+    let n = 2000;
+    let fm_err = |nfe: usize| {
+        let x0 = noise(n, &mut StdRng::seed_from_u64(11));
+        sample_error(&fm::sample(&fm_net, &[], x0, n, nfe, Solver::Euler, None))
+    };
+    let dd_err = |nfe: usize| {
+        let mut rng = StdRng::seed_from_u64(11);
+        let x0 = noise(n, &mut rng);
+        sample_error(&ddpm::sample(&dd_net, &schedule, &[], x0, n, nfe, 5.0, None, &mut rng))
+    };
+    // At 20 steps both reproduce the data's means and variances (x: 0 and 4.09; y: 0 and 0.09).
+    let fm20 = fm::sample(&fm_net, &[], noise(n, &mut StdRng::seed_from_u64(11)), n, 20, Solver::Euler, None);
+    let mut rng = StdRng::seed_from_u64(11);
+    let x0 = noise(n, &mut rng);
+    let dd20 = ddpm::sample(&dd_net, &schedule, &[], x0, n, 20, 5.0, None, &mut rng);
+    for (name, x) in [("FM", &fm20), ("DDPM", &dd20)] {
+        let [mx, vx, my, vy] = moments(x);
+        eprintln!("{name} at 20 steps: mean ({mx:.3}, {my:.3}) variance ({vx:.3}, {vy:.3})");
+        // Means within 5% of the mode separation (x) and a third of the spread (y).
+        assert!(mx.abs() < 0.2 && my.abs() < 0.1, "{name}: means ({mx}, {my})");
+        assert!((vx / 4.09 - 1.0).abs() < 0.1, "{name}: x variance {vx} vs 4.09");
+        assert!((vy / 0.09 - 1.0).abs() < 0.5, "{name}: y variance {vy} vs 0.09");
+    }
+    // More steps help DDPM (the sampler converges), and at its full 1000 it matches FM at 20.
+    let (f20, d20, d1000) = (fm_err(20), dd_err(20), dd_err(1000));
+    eprintln!("error at NFE 20: FM {f20:.3} DDPM {d20:.3}; DDPM at 1000: {d1000:.3}");
+    assert!(d1000 < d20 && d1000 < 0.35 && f20 < 0.35, "FM 20: {f20}, DDPM 20: {d20}, DDPM 1000: {d1000}");
+    for nfe in [1, 2, 5] {
+        let (f, d) = (fm_err(nfe), dd_err(nfe));
+        eprintln!("error at NFE {nfe}: FM {f:.3} DDPM {d:.3}");
+        assert!(f < d, "NFE {nfe}: FM error {f} is not below DDPM's {d}");
+    }
+    // Seeds make sampling repeatable.
+    let again = fm::sample(&fm_net, &[], noise(4, &mut StdRng::seed_from_u64(3)), 4, 5, Solver::Heun, None);
+    assert_eq!(again, fm::sample(&fm_net, &[], noise(4, &mut StdRng::seed_from_u64(3)), 4, 5, Solver::Heun, None));
+    // Guidance toward x = +2 moves samples onto the right mode.
+    let toward = |x: &[f32], n: usize| (0..n).flat_map(|i| [x[i * DIM] - MODE, 0.0]).collect::<Vec<f32>>();
+    let g = Guidance { weight: 2.0, grad: &toward, steps: 0..15 };
+    let guided = fm::sample(&fm_net, &[], noise(n, &mut StdRng::seed_from_u64(5)), n, 20, Solver::Euler, Some(&g));
+    let right = guided.iter().step_by(DIM).filter(|&&x| x > 0.0).count() as f64 / n as f64;
+    assert!(right > 0.9, "guided samples on the right mode: {right}");
+}
