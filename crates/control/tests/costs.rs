@@ -1,0 +1,117 @@
+//! Every cost's gradient against central finite differences, and the commands' checks.
+
+use flowmimic_control::*;
+use flowmimic_geom::{CharFrame, DVec3};
+use flowmimic_sim::skeleton::body;
+use flowmimic_sim::state::offset;
+
+/// A trajectory with plausible magnitudes: root moving forward, small tilts and turns.
+fn trajectory(layout: Layout) -> Vec<f32> {
+    let mut tau: Vec<f32> = (0..layout.len()).map(|i| 0.3 * ((i as f32) * 0.731).sin()).collect();
+    for k in 1..=layout.horizon {
+        let kf = k as f32;
+        let p = layout.root_pos(k);
+        tau[p..p + 3].copy_from_slice(&[0.04 * kf, 0.01 * kf, 0.9]);
+        let r = layout.root_rot(k);
+        tau[r..r + 3].copy_from_slice(&[0.02, -0.03, 0.05 * kf]);
+        let h = layout.body_pos(k, body::R_HAND);
+        tau[h..h + 3].copy_from_slice(&[0.1, -0.25, 0.05 + 0.01 * kf]);
+    }
+    tau
+}
+
+fn check_gradient(cost: &dyn Cost, tau: &[f32], what: &str) {
+    let mut grad = vec![0.0; tau.len()];
+    cost.add_grad(tau, &mut grad);
+    let eps = 1e-3;
+    let mut checked = 0;
+    for i in 0..tau.len() {
+        let (mut a, mut b) = (tau.to_vec(), tau.to_vec());
+        a[i] += eps;
+        b[i] -= eps;
+        let fd = (f64::from(cost.cost(&a)) - f64::from(cost.cost(&b))) / (2.0 * f64::from(eps));
+        let tol = 2e-2 * (1.0 + fd.abs());
+        assert!((fd - f64::from(grad[i])).abs() < tol, "{what}: d/dtau[{i}] fd {fd} vs {}", grad[i]);
+        checked += usize::from(grad[i] != 0.0);
+    }
+    assert!(checked > 0, "{what}: the gradient is not all zero");
+}
+
+#[test]
+fn gradients_match_finite_differences() {
+    let layout = Layout { horizon: 4 };
+    let tau = trajectory(layout);
+    check_gradient(&Joystick::new(layout, 1.0, -0.2).unwrap(), &tau, "joystick");
+    check_gradient(&TurnRate::new(layout, 0.5).unwrap(), &tau, "turn rate");
+    check_gradient(&Reach::new(layout, body::R_HAND, [0.3, -0.5, 1.4]).unwrap(), &tau, "reach");
+    check_gradient(&Waypoint::new(layout, [2.0, 1.0]).unwrap(), &tau, "waypoint far");
+    check_gradient(&Waypoint::new(layout, [0.1, 0.05]).unwrap(), &tau, "waypoint near");
+    let both = Sum::default()
+        .with(1.0, Waypoint::new(layout, [2.0, 1.0]).unwrap())
+        .with(3.0, Reach::new(layout, body::R_HAND, [0.3, -0.5, 1.4]).unwrap());
+    check_gradient(&both, &tau, "waypoint + reach");
+}
+
+#[test]
+fn costs_measure_what_they_say() {
+    let layout = Layout { horizon: 3 };
+    let mut tau = vec![0.0f32; layout.len()];
+    for k in 1..=3 {
+        let v = layout.root_vel(k);
+        tau[v] = 1.0;
+    }
+    // Walking at exactly the command costs nothing; the wrong way costs 1/2 * 4 per state.
+    assert_eq!(Joystick::new(layout, 1.0, 0.0).unwrap().cost(&tau), 0.0);
+    assert!((Joystick::new(layout, -1.0, 0.0).unwrap().cost(&tau) - 6.0).abs() < 1e-6);
+    // The hand is the root plus the yaw-rotated local offset: a 90 degree turn maps +x to +y.
+    let k = 1;
+    tau[layout.root_pos(k)..layout.root_pos(k) + 3].copy_from_slice(&[1.0, 0.0, 0.9]);
+    tau[layout.root_rot(k) + 2] = std::f32::consts::FRAC_PI_2;
+    let h = layout.body_pos(k, body::L_HAND);
+    tau[h..h + 3].copy_from_slice(&[0.5, 0.0, 0.1]);
+    let single = Layout { horizon: 1 };
+    let at = Reach::new(single, body::L_HAND, [1.0, 0.5, 1.0]).unwrap();
+    assert!(at.cost(&tau[..single.len()]) < 1e-10, "hand at (1, 0.5, 1.0)");
+    assert_eq!(layout.state(1), 69);
+    assert_eq!(layout.root_vel(2) - layout.root_pos(2), offset::ROOT_VEL);
+}
+
+#[test]
+fn world_targets_are_converted_through_the_root_pose() {
+    let layout = Layout { horizon: 1 };
+    // Standing at (2, 3) facing +y: a world point 1 m further along +y is 1 m straight ahead.
+    let frame = CharFrame::new(DVec3::new(2.0, 3.0, 0.9), std::f64::consts::FRAC_PI_2);
+    let w = Waypoint::world(layout, [2.0, 4.0], &frame).unwrap();
+    let mut tau = vec![0.0f32; layout.len()];
+    tau[layout.root_pos(1)] = 1.0;
+    assert!(w.cost(&tau) < 1e-6);
+}
+
+#[test]
+fn bad_commands_are_refused_with_the_value() {
+    let layout = Layout { horizon: 2 };
+    let err = Joystick::new(layout, f64::NAN, 0.0).err().unwrap().to_string();
+    assert!(err.contains("joystick") && err.contains("NaN"), "{err}");
+    assert!(Joystick::new(layout, 10.0, 0.0).err().unwrap().to_string().contains("10"));
+    assert!(Reach::new(layout, body::R_HAND, [9.0, 0.0, 1.0]).is_err());
+    assert!(Reach::new(layout, body::R_HAND, [0.5, 0.0, -1.0]).is_err());
+    assert!(Waypoint::new(layout, [f64::INFINITY, 0.0]).is_err());
+    assert!(TurnRate::new(layout, 7.0).is_err());
+}
+
+#[test]
+fn normalised_gradients_scale_by_the_std() {
+    let layout = Layout { horizon: 2 };
+    let cost = Joystick::new(layout, 1.0, 0.0).unwrap();
+    let mean = vec![0.5f32; layout.len()];
+    let std = vec![2.0f32; layout.len()];
+    let x = vec![0.1f32; 2 * layout.len()];
+    let n = Normalised { cost: &cost, mean: &mean, std: &std };
+    let g = n.grad_batch(&x, 2);
+    let tau: Vec<f32> = x[..layout.len()].iter().map(|x| 0.5 + 2.0 * x).collect();
+    let mut raw = vec![0.0; layout.len()];
+    cost.add_grad(&tau, &mut raw);
+    for i in 0..layout.len() {
+        assert!((g[i] - 2.0 * raw[i]).abs() < 1e-6 && (g[layout.len() + i] - g[i]).abs() < 1e-6);
+    }
+}
