@@ -3,4 +3,4 @@
 
 pub mod mlp;
 
-pub use mlp::{Adam, Mlp, Tape};
+pub use mlp::{Adam, Mlp, Tape, sgemm_gflops};

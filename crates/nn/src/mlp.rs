@@ -200,6 +200,25 @@ impl Adam {
     }
 }
 
+/// Measured single-precision matrix-multiply throughput of this machine (all threads that
+/// `matrixmultiply` uses): the median of `repeats` square `size x size` products, GFLOP/s.
+pub fn sgemm_gflops(size: usize, repeats: usize) -> f64 {
+    let a: Vec<f32> = (0..size * size).map(|i| (i % 7) as f32 * 0.1).collect();
+    let mut c = vec![0.0f32; size * size];
+    let s = size as isize;
+    let mut rates: Vec<f64> = (0..repeats.max(1) + 1)
+        .map(|_| {
+            let t = std::time::Instant::now();
+            gemm(size, size, size, (&a, s, 1), (&a, s, 1), &mut c, 0.0);
+            std::hint::black_box(&c);
+            2.0 * (size as f64).powi(3) / t.elapsed().as_secs_f64() / 1e9
+        })
+        .skip(1)
+        .collect();
+    rates.sort_by(f64::total_cmp);
+    rates[rates.len() / 2]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
