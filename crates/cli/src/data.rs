@@ -2,7 +2,7 @@
 
 use anyhow::Result;
 use clap::Subcommand;
-use flowmimic_data::{CollectConfig, Dataset, ShardInfo, collect};
+use flowmimic_data::{CollectConfig, Dataset, ShardInfo, Stats, WindowSpec, collect};
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::skeleton::body;
 use flowmimic_sim::state::offset;
@@ -14,6 +14,15 @@ use std::sync::Arc;
 
 #[derive(Subcommand)]
 pub enum DatasetCommand {
+    /// Compute (once) and store the per-slot normalisation statistics of the windows
+    /// (history N, horizon H) as stats-N<N>-H<H>.safetensors in the dataset.
+    Stats {
+        dir: PathBuf,
+        #[arg(long, default_value_t = 4)]
+        history: usize,
+        #[arg(long, default_value_t = 16)]
+        horizon: usize,
+    },
     /// Hours per clip and sigma, fall rates, feature ranges, and coverage plots (PNG/SVG).
     Inspect {
         /// The dataset directory.
@@ -82,7 +91,15 @@ fn histogram(values: &[f64], lo: f64, hi: f64, bins: usize) -> Vec<(f64, f64)> {
 }
 
 pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
-    let DatasetCommand::Inspect { dir } = cmd;
+    let dir = match cmd {
+        DatasetCommand::Stats { dir, history, horizon } => {
+            let spec = WindowSpec { history, horizon };
+            let stats = Stats::of_dataset(&Dataset::open(&dir)?, spec)?;
+            println!("{} windows; wrote {}", stats.windows, dir.join(Stats::file_name(spec)).display());
+            return Ok(());
+        }
+        DatasetCommand::Inspect { dir } => dir,
+    };
     let dataset = Dataset::open(&dir)?;
     let shards = dataset.load_all()?;
     println!("{:<20} {:>6} {:>9} {:>8}", "clip", "sigma", "steps", "hours");

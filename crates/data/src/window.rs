@@ -3,10 +3,13 @@
 //! global part (root position, velocity, rotation) re-expressed in the character frame of
 //! step t, its local part as stored. Windows never cross an episode boundary.
 
-use crate::format::Shard;
+use crate::DataError;
+use crate::format::{Dataset, Shard};
 use flowmimic_geom::{DVec3, from_rotvec, rotvec, yaw_quat};
+use flowmimic_io::le;
 use flowmimic_sim::state::offset;
 use flowmimic_sim::{NUM_DOFS, STATE_DIM};
+use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 use serde::{Deserialize, Serialize};
 
 /// History length N and horizon H.
@@ -129,5 +132,84 @@ impl Stats {
         let (state_mean, state_std) = finish(&s1, &s2);
         let (action_mean, action_std) = finish(&a1, &a2);
         Self { spec, state_mean, state_std, action_mean, action_std, windows: count }
+    }
+}
+
+impl Stats {
+    /// `stats-N<history>-H<horizon>.safetensors` in the dataset directory.
+    pub fn file_name(spec: WindowSpec) -> String {
+        format!("stats-N{}-H{}.safetensors", spec.history, spec.horizon)
+    }
+
+    /// The dataset's statistics for `spec`: read from disk when stored for the same shards,
+    /// otherwise computed once over all shards and stored.
+    pub fn of_dataset(dataset: &Dataset, spec: WindowSpec) -> Result<Self, DataError> {
+        let path = dataset.dir.join(Self::file_name(spec));
+        let shards_key = dataset.manifest.shards.iter().map(|s| s.sha256.as_str()).collect::<Vec<_>>().join(",");
+        if path.exists() {
+            let (stats, key) = Self::load(&path)?;
+            if key == shards_key && stats.spec == spec {
+                return Ok(stats);
+            }
+        }
+        let shards = dataset.load_all()?;
+        let stats = Self::compute(spec, shards.iter().map(|(_, s)| s));
+        stats.save(&path, &shards_key)?;
+        Ok(stats)
+    }
+
+    fn save(&self, path: &std::path::Path, shards_key: &str) -> Result<(), DataError> {
+        let slots = self.spec.states();
+        let tensors = [
+            ("state_mean", &self.state_mean, STATE_DIM),
+            ("state_std", &self.state_std, STATE_DIM),
+            ("action_mean", &self.action_mean, NUM_DOFS),
+            ("action_std", &self.action_std, NUM_DOFS),
+        ]
+        .map(|(name, v, w)| (name, le::bytes(v.iter().copied()), w));
+        let views: Vec<(&str, TensorView)> = tensors
+            .iter()
+            .map(|(name, bytes, w)| (*name, TensorView::new(Dtype::F32, vec![slots, *w], bytes).expect("shape")))
+            .collect();
+        let meta = [
+            ("history", self.spec.history.to_string()),
+            ("horizon", self.spec.horizon.to_string()),
+            ("windows", self.windows.to_string()),
+            ("shards_sha256", shards_key.to_string()),
+        ]
+        .map(|(k, v)| (k.to_string(), v));
+        let bytes = safetensors::serialize(views, Some(meta.into_iter().collect()))
+            .map_err(|e| DataError::Invalid(e.to_string()))?;
+        flowmimic_io::write_atomic(path, &bytes)?;
+        Ok(())
+    }
+
+    /// Reads a stats file, returning it and the shard checksums it was computed over.
+    pub fn load(path: &std::path::Path) -> Result<(Self, String), DataError> {
+        let bad = |m: String| DataError::Shard { path: path.into(), message: m };
+        let bytes = flowmimic_io::read(path)?;
+        let (_, meta) = SafeTensors::read_metadata(&bytes).map_err(|e| bad(e.to_string()))?;
+        let meta = meta.metadata().clone().unwrap_or_default();
+        let num = |k: &str| {
+            meta.get(k).and_then(|v| v.parse::<usize>().ok()).ok_or_else(|| bad(format!("metadata '{k}' missing")))
+        };
+        let spec = WindowSpec { history: num("history")?, horizon: num("horizon")? };
+        let st = SafeTensors::deserialize(&bytes).map_err(|e| bad(e.to_string()))?;
+        let get = |name: &str, width: usize| -> Result<Vec<f32>, DataError> {
+            let t = st.tensor(name).map_err(|e| bad(format!("tensor '{name}': {e}")))?;
+            if t.shape() != [spec.states(), width] {
+                return Err(bad(format!("tensor '{name}' has shape {:?}", t.shape())));
+            }
+            Ok(le::values(t.data()))
+        };
+        let stats = Self {
+            spec,
+            state_mean: get("state_mean", STATE_DIM)?,
+            state_std: get("state_std", STATE_DIM)?,
+            action_mean: get("action_mean", NUM_DOFS)?,
+            action_std: get("action_std", NUM_DOFS)?,
+            windows: num("windows")?,
+        };
+        Ok((stats, meta.get("shards_sha256").cloned().unwrap_or_default()))
     }
 }

@@ -147,6 +147,14 @@ fn collection_writes_checked_shards_and_appends_without_rewriting() {
     assert_eq!(reopened.manifest.shards.len(), 2);
     let all = reopened.load_all().unwrap();
     assert_eq!(all[0].1.steps(), 60);
+    // Statistics are computed once, stored, and read back for the same shards.
+    let spec = WindowSpec { history: 2, horizon: 3 };
+    let stats = Stats::of_dataset(&reopened, spec).unwrap();
+    let stored = dir.join(Stats::file_name(spec));
+    assert!(stored.exists() && stats.windows > 0);
+    let (back, _) = Stats::load(&stored).unwrap();
+    assert_eq!(back, stats);
+    assert_eq!(Stats::of_dataset(&reopened, spec).unwrap(), stats);
     // A damaged shard is named.
     let mut bytes = first_bytes.clone();
     let n = bytes.len();
