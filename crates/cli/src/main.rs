@@ -28,7 +28,7 @@ struct Settings {
     /// Built-in settings to start from: tiny (tests), cpu (a laptop), paper (a GPU).
     #[arg(long, global = true, default_value = "cpu")]
     preset: String,
-    /// A TOML file whose keys override the preset (see configs/ for every key).
+    /// A TOML file whose keys override the preset (`flowmimic config` prints every key).
     #[arg(long, global = true)]
     config: Option<PathBuf>,
 }
@@ -55,7 +55,7 @@ enum Command {
         #[arg(short, long, default_value = "runs/data")]
         out: PathBuf,
     },
-    /// Inspect a rollout dataset.
+    /// Rollout datasets: inspect them, compute window statistics.
     #[command(subcommand)]
     Dataset(data::DatasetCommand),
     /// Measure throughput and print a table of medians.
