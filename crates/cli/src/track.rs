@@ -7,6 +7,8 @@ use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::Humanoid;
 use flowmimic_track::train::{Checkpoint, IterationLog};
 use flowmimic_track::{TrackConfig, Trainer, evaluate};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -128,6 +130,14 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
                 trainer.policy.num_params()
             );
             let started = std::time::Instant::now();
+            // A bar on a terminal; one line per iteration in logs (nohup, CI).
+            let bar = std::io::stderr().is_terminal().then(|| {
+                let bar = ProgressBar::new(cfg.iterations as u64).with_position(trainer.iteration as u64);
+                bar.set_style(
+                    ProgressStyle::with_template("{bar:30} {pos}/{len} [{elapsed} < {eta}] {msg}").expect("template"),
+                );
+                bar
+            });
             while trainer.iteration < cfg.iterations {
                 let log: IterationLog = trainer.iterate().context("training stopped; the last checkpoint is intact")?;
                 rows.push(log.csv_row());
@@ -141,10 +151,8 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
                     flowmimic_io::write_atomic(&log_path, format!("{csv}\n").as_bytes())?;
                     plot_curves(&out, &rows)?;
                 }
-                eprintln!(
-                    "[{:>5}/{}] {:>9} steps  reward {:.3}  episode {:>5.1}  fails {:>3}/{:<3}  body err {:.3} m  kl {:.4}  lr {:.1e}  {:>5.0} steps/s  {:.0} s",
-                    log.iteration,
-                    cfg.iterations,
+                let status = format!(
+                    "{:>9} steps  reward {:.3}  episode {:>5.1}  fails {:>3}/{:<3}  body err {:.3} m  kl {:.4}  lr {:.1e}  {:>5.0} steps/s",
                     log.env_steps,
                     log.mean_reward,
                     log.episode_length,
@@ -154,8 +162,22 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
                     log.update.kl,
                     log.update.learning_rate,
                     log.steps_per_second,
-                    started.elapsed().as_secs_f64()
                 );
+                match &bar {
+                    Some(bar) => {
+                        bar.set_position(trainer.iteration as u64);
+                        bar.set_message(status);
+                    }
+                    None => eprintln!(
+                        "[{:>5}/{}] {status}  {:.0} s",
+                        log.iteration,
+                        cfg.iterations,
+                        started.elapsed().as_secs_f64()
+                    ),
+                }
+            }
+            if let Some(bar) = bar {
+                bar.finish();
             }
             eprintln!("wrote {} and {}", policy_path.display(), log_path.display());
         }
