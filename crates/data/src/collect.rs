@@ -1,12 +1,14 @@
 //! Noise-augmented rollouts of a tracking expert (PDP style, paper section III-E): execute a
 //! noisy action but record the expert's clean action for the state reached.
 //!
-//! The noise is added where the paper adds it, to the expert policy's own action: here the
-//! residual `u` around the reference (`action_scale` = 0.15 rad per unit), as BeyondMimic's
-//! policies output joint offsets of about 0.2 rad per unit. Adding sigma = 0.12 to the
-//! environment's normalised action instead would mean 0.12-0.3 rad per joint (its scale spans
-//! each joint's whole range), several times the paper's perturbation. Both the clean and the
-//! executed action are stored in the environment's normalised action space.
+//! The noise is added where the paper adds it, to the expert policy's own action, in the
+//! physical units the paper's sigmas imply: BeyondMimic's policies (the paper's experts) output
+//! joint offsets of `0.25 * effort / kp` per unit, about 0.5 rad on a G1 hip (88 N m / 41 N m
+//! per rad), less on smaller joints. `noise_unit_rad` (default 0.4) is that unit here: the PD
+//! target gets `N(0, (sigma * noise_unit_rad)^2)` radians on every hinge, so sigma = 0.12 is
+//! about 0.05 rad and sigma = 0.36 about 0.14 rad. (Adding sigma to the environment's normalised
+//! action instead would mean 0.12-0.94 rad, since its unit spans each joint's whole range.)
+//! Both the clean and the executed action are stored in the environment's normalised space.
 
 use crate::DataError;
 use crate::format::Shard;
@@ -31,12 +33,19 @@ pub struct CollectConfig {
     pub noise: Vec<(f32, usize)>,
     /// Steps per rollout; 0 means as long as the clip.
     pub rollout_steps: usize,
+    /// Radians of PD-target noise per unit of sigma (see the module docs).
+    pub noise_unit_rad: f64,
     pub seed: u64,
 }
 
 impl Default for CollectConfig {
     fn default() -> Self {
-        Self { noise: vec![(0.12, 16), (0.16, 12), (0.24, 6), (0.36, 6)], rollout_steps: 0, seed: 0 }
+        Self {
+            noise: vec![(0.12, 16), (0.16, 12), (0.24, 6), (0.36, 6)],
+            rollout_steps: 0,
+            noise_unit_rad: 0.4,
+            seed: 0,
+        }
     }
 }
 
@@ -106,7 +115,9 @@ pub fn collect(
                 let clean = lane.tracker.action(&reference, u, &run_cfg);
                 let noise = Normal::new(0.0, lane.sigma)
                     .map_err(|e| DataError::Invalid(format!("sigma {}: {e}", lane.sigma)))?;
-                let noisy_u: Vec<f32> = u.iter().map(|x| x + noise.sample(&mut lane.rng)).collect();
+                // The expert's output u is in units of action_scale radians.
+                let per_unit = (cfg.noise_unit_rad / run_cfg.action_scale) as f32;
+                let noisy_u: Vec<f32> = u.iter().map(|x| x + per_unit * noise.sample(&mut lane.rng)).collect();
                 let noisy = lane.tracker.action(&reference, &noisy_u, &run_cfg);
                 let env = lane.tracker.env();
                 let k = env.bodies();

@@ -105,7 +105,8 @@ fn collection_writes_checked_shards_and_appends_without_rewriting() {
     let h = Humanoid::new(SimConfig::default()).unwrap();
     let cfg = TrackConfig { hidden: vec![16], ..Default::default() };
     let expert = Policy::new(OBS_DIM, NUM_DOFS, &cfg, &mut rand::rngs::StdRng::seed_from_u64(0));
-    let collect_cfg = CollectConfig { noise: vec![(0.12, 2), (0.36, 1)], rollout_steps: 20, seed: 3 };
+    let collect_cfg =
+        CollectConfig { noise: vec![(0.12, 2), (0.36, 1)], rollout_steps: 20, seed: 3, ..Default::default() };
     let dir = tmp("collect");
     let mut dataset = Dataset::open_or_create(&dir).unwrap();
     let mut first_bytes = Vec::new();
