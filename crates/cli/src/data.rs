@@ -50,14 +50,29 @@ fn collect_run(
     let expert = run.join(crate::track::RUN_POLICY);
     let ck = Checkpoint::read(&expert)?;
     let (expert_cfg, policy) = (ck.config()?, ck.policy()?);
-    let clip = flowmimic_motion::Clip::load(humanoid, &run.join(crate::track::RUN_CLIP))?;
+    for clip in crate::track::run_clips(humanoid, run)? {
+        collect_clip(humanoid, &expert, &clip, &policy, &expert_cfg, dataset, cfg)?;
+    }
+    Ok(())
+}
+
+/// One clip of a run: its noisy rollouts become the clip's shard.
+fn collect_clip(
+    humanoid: &Arc<Humanoid>,
+    expert: &std::path::Path,
+    clip: &flowmimic_motion::Clip,
+    policy: &flowmimic_track::ppo::Policy,
+    expert_cfg: &flowmimic_track::TrackConfig,
+    dataset: &mut Dataset,
+    cfg: &CollectConfig,
+) -> Result<()> {
     let envs: usize = cfg.noise.iter().map(|n| n.1).sum();
     eprintln!(
         "collecting {} with {envs} noisy rollouts of {} steps",
         clip.name,
         if cfg.rollout_steps == 0 { clip.len() - 1 } else { cfg.rollout_steps }
     );
-    let (shard, stats) = collect(humanoid, &clip, &policy, &expert_cfg, cfg)?;
+    let (shard, stats) = collect(humanoid, clip, policy, expert_cfg, cfg)?;
     let info = ShardInfo {
         file: format!("{}.rollouts.safetensors", clip.name),
         clip: clip.name.clone(),

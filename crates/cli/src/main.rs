@@ -152,7 +152,8 @@ fn run(cli: Cli) -> Result<()> {
             );
             let all = std::thread::available_parallelism().map_or(1, |n| n.get());
             for threads in if all > 1 { vec![1, all] } else { vec![1] } {
-                let log = flowmimic_track::train::bench(&humanoid, clip.clone(), cfg.clone(), iterations, threads)?;
+                let log =
+                    flowmimic_track::train::bench(&humanoid, vec![clip.clone()], cfg.clone(), iterations, threads)?;
                 let fraction = update_flops / f64::from(log.update_seconds) / 1e9 / peak;
                 println!(
                     "{threads:>7} {:>12.0} {:>11.3} {:>11.3} {:>11.3} {:>11.0}%",

@@ -18,9 +18,10 @@ pub enum TrackCommand {
     /// Writes <out>/policy.safetensors (checkpointed atomically), clip.safetensors (the
     /// reference), log.csv, config.json and learning-curve plots.
     Train {
-        /// Clip file to track (`flowmimic motion import|generate` writes them).
+        /// Clip file to track (`flowmimic motion import|generate` writes them); repeat it to train
+        /// one reference-conditioned policy on several clips.
         #[arg(long)]
-        clip: Option<PathBuf>,
+        clip: Vec<PathBuf>,
         /// Run directory; default runs/track/<clip name>.
         #[arg(short, long)]
         out: Option<PathBuf>,
@@ -48,8 +49,20 @@ pub enum TrackCommand {
     },
 }
 
-/// The reference clip a run tracks, saved next to its policy.
-pub(crate) const RUN_CLIP: &str = "clip.safetensors";
+/// The reference clips a run tracks, saved next to its policy: clip.safetensors, then
+/// clip-1.safetensors, clip-2.safetensors, ... for a policy trained on several clips.
+pub(crate) fn run_clip_file(k: usize) -> String {
+    if k == 0 { "clip.safetensors".into() } else { format!("clip-{k}.safetensors") }
+}
+
+/// All clips of a run directory, in training order.
+pub(crate) fn run_clips(humanoid: &Arc<Humanoid>, run: &Path) -> Result<Vec<Clip>> {
+    let mut clips = Vec::new();
+    while clips.is_empty() || run.join(run_clip_file(clips.len())).exists() {
+        clips.push(Clip::load(humanoid, &run.join(run_clip_file(clips.len())))?);
+    }
+    Ok(clips)
+}
 /// The policy of a run.
 pub(crate) const RUN_POLICY: &str = "policy.safetensors";
 
@@ -74,22 +87,20 @@ fn plot_curves(out: &Path, rows: &[String]) -> Result<()> {
     Ok(())
 }
 
-/// The clip a run tracks: a file, or the default generated 10 s straight walk.
-fn load_clip(humanoid: &Arc<Humanoid>, clip: Option<&Path>) -> Result<Clip> {
-    Ok(match clip {
-        Some(path) => Clip::load(humanoid, path)?,
-        None => {
-            flowmimic_motion::generate(humanoid, "walk_straight", &GaitParams { duration: 10.0, ..Default::default() })?
-                .0
-        }
-    })
+/// The clips a run tracks: files, or the default generated 10 s straight walk.
+fn load_clips(humanoid: &Arc<Humanoid>, files: &[PathBuf]) -> Result<Vec<Clip>> {
+    if files.is_empty() {
+        let walk = GaitParams { duration: 10.0, ..Default::default() };
+        return Ok(vec![flowmimic_motion::generate(humanoid, "walk_straight", &walk)?.0]);
+    }
+    files.iter().map(|f| Ok(Clip::load(humanoid, f)?)).collect()
 }
 
 pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) -> Result<()> {
     match cmd {
         TrackCommand::Train { clip, out, iterations, resume } => {
-            let clip = load_clip(humanoid, clip.as_deref())?;
-            let out = out.unwrap_or_else(|| PathBuf::from("runs/track").join(&clip.name));
+            let clips = load_clips(humanoid, &clip)?;
+            let out = out.unwrap_or_else(|| PathBuf::from("runs/track").join(&clips[0].name));
             if let Some(n) = iterations {
                 cfg.iterations = n;
             }
@@ -97,7 +108,7 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
             let log_path = out.join("log.csv");
             let mut rows: Vec<String> = Vec::new();
             let mut trainer = if resume {
-                let t = Trainer::resume(humanoid, clip, cfg.clone(), &policy_path)?;
+                let t = Trainer::resume(humanoid, clips, cfg.clone(), &policy_path)?;
                 let text = flowmimic_io::read_to_string(&log_path).unwrap_or_default();
                 // Keep the log up to the checkpoint's iteration.
                 rows = text
@@ -117,14 +128,20 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
                         policy_path.display()
                     );
                 }
-                Trainer::new(humanoid, clip, cfg.clone())?
+                Trainer::new(humanoid, clips, cfg.clone())?
             };
             flowmimic_io::write_atomic(&out.join("config.json"), serde_json::to_string_pretty(&cfg)?.as_bytes())?;
-            trainer.reference.clip.save(&out.join(RUN_CLIP))?;
+            for (k, reference) in trainer.references.iter().enumerate() {
+                reference.clip.save(&out.join(run_clip_file(k)))?;
+            }
             eprintln!(
-                "tracking '{}' ({} frames) with {} envs x {} steps per iteration, policy {} parameters",
-                trainer.reference.clip.name,
-                trainer.reference.len(),
+                "tracking {} with {} envs x {} steps per iteration, policy {} parameters",
+                trainer
+                    .references
+                    .iter()
+                    .map(|r| format!("'{}' ({} frames)", r.clip.name, r.len()))
+                    .collect::<Vec<_>>()
+                    .join(", "),
                 cfg.envs,
                 cfg.horizon,
                 trainer.policy.num_params()
@@ -190,9 +207,10 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
         TrackCommand::Eval { run, episodes, kicks } => {
             let ck = Checkpoint::read(&run.join(RUN_POLICY))?;
             let (cfg, policy_net) = (ck.config()?, ck.policy()?);
-            let clip = Clip::load(humanoid, &run.join(RUN_CLIP))?;
-            let report = evaluate(humanoid, &policy_net, &clip, &cfg, episodes.max(1), kicks, 12345)?;
-            println!("{}", serde_json::to_string_pretty(&report)?);
+            for clip in run_clips(humanoid, &run)? {
+                let report = evaluate(humanoid, &policy_net, &clip, &cfg, episodes.max(1), kicks, 12345)?;
+                println!("{}: {}", clip.name, serde_json::to_string_pretty(&report)?);
+            }
         }
     }
     Ok(())

@@ -217,25 +217,34 @@ impl IterationLog {
     }
 }
 
-/// A PPO run on one reference clip.
+/// A PPO run: one reference-conditioned policy tracking one clip (the paper's per-clip experts)
+/// or several (environment `i` tracks clip `i mod k`).
 pub struct Trainer {
     pub cfg: TrackConfig,
-    pub reference: Arc<Reference>,
+    pub references: Vec<Arc<Reference>>,
     pub policy: Policy,
     opt: Optimiser,
     trackers: Vec<Tracker>,
     rngs: Vec<StdRng>,
     rng: StdRng,
-    sampler: StartSampler,
+    /// One adaptive start sampler per clip.
+    samplers: Vec<StartSampler>,
     pub iteration: usize,
     pub env_steps: u64,
     episode_steps: Vec<usize>,
 }
 
 impl Trainer {
-    pub fn new(humanoid: &Arc<Humanoid>, clip: Clip, cfg: TrackConfig) -> Result<Self, TrackError> {
+    pub fn new(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, cfg: TrackConfig) -> Result<Self, TrackError> {
         cfg.validate()?;
-        if clip.len() < 3 {
+        if clips.is_empty() || clips.len() > cfg.envs {
+            return Err(TrackError::Invalid(format!(
+                "{} clips for {} environments: need 1 to envs",
+                clips.len(),
+                cfg.envs
+            )));
+        }
+        if let Some(clip) = clips.iter().find(|c| c.len() < 3) {
             return Err(TrackError::Invalid(format!(
                 "clip {} has {} frames; tracking needs 3 or more",
                 clip.name,
@@ -245,8 +254,8 @@ impl Trainer {
         let mut rng = StdRng::seed_from_u64(cfg.seed);
         let policy = Policy::new(OBS_DIM, NUM_DOFS, &cfg, &mut rng);
         let opt = Optimiser { adam: Adam::new(policy.num_params()), lr: cfg.learning_rate as f32 };
-        let reference = Arc::new(Reference::new(clip));
-        let sampler = StartSampler::new(reference.len(), &cfg);
+        let references: Vec<Arc<Reference>> = clips.into_iter().map(|c| Arc::new(Reference::new(c))).collect();
+        let samplers = references.iter().map(|r| StartSampler::new(r.len(), &cfg)).collect();
         let rngs = (0..cfg.envs)
             .map(|i| StdRng::seed_from_u64(cfg.seed.wrapping_mul(1_000_003).wrapping_add(i as u64 + 1)))
             .collect();
@@ -254,13 +263,13 @@ impl Trainer {
         let mut trainer = Self {
             episode_steps: vec![0; cfg.envs],
             cfg,
-            reference,
+            references,
             policy,
             opt,
             trackers,
             rngs,
             rng,
-            sampler,
+            samplers,
             iteration: 0,
             env_steps: 0,
         };
@@ -268,18 +277,33 @@ impl Trainer {
         Ok(trainer)
     }
 
+    /// The clip environment `i` tracks.
+    fn clip_of(&self, i: usize) -> usize {
+        i % self.references.len()
+    }
+
+    fn reset_env(&mut self, i: usize) -> Result<(), TrackError> {
+        let c = self.clip_of(i);
+        let start = self.samplers[c].sample(&self.cfg, &mut self.rng);
+        self.trackers[i].reset(&self.references[c], start, &self.cfg, &mut self.rngs[i])?;
+        Ok(())
+    }
+
     fn reset_all(&mut self) -> Result<(), TrackError> {
         for i in 0..self.trackers.len() {
-            let start = self.sampler.sample(&self.cfg, &mut self.rng);
-            self.trackers[i].reset(&self.reference, start, &self.cfg, &mut self.rngs[i])?;
+            self.reset_env(i)?;
             self.episode_steps[i] = 0;
         }
         Ok(())
     }
 
     fn observe_all(&self, out: &mut [f32]) {
-        let reference = &self.reference;
-        self.trackers.par_iter().zip(out.par_chunks_mut(OBS_DIM)).for_each(|(t, o)| t.observe(reference, o));
+        let (refs, k) = (&self.references, self.references.len());
+        self.trackers
+            .par_iter()
+            .zip(out.par_chunks_mut(OBS_DIM))
+            .enumerate()
+            .for_each(|(i, (t, o))| t.observe(&refs[i % k], o));
     }
 
     /// One iteration: collect `envs x horizon` steps, then update.
@@ -311,13 +335,14 @@ impl Trainer {
             let ppo::Sampled { actions, means, log_probs, values } = ppo::sample(&self.policy, &obs, e, &mut self.rng);
             network += t0.elapsed().as_secs_f64();
             let t1 = Instant::now();
-            let (reference, cfg) = (&self.reference, &self.cfg);
+            let (refs, k, cfg) = (&self.references, self.references.len(), &self.cfg);
             let results: Vec<(RewardTerms, Ending)> = self
                 .trackers
                 .par_iter_mut()
                 .zip(self.rngs.par_iter_mut())
                 .zip(actions.par_chunks(NUM_DOFS))
-                .map(|((tracker, rng), u)| tracker.step(reference, u, cfg, rng))
+                .enumerate()
+                .map(|(i, ((tracker, rng), u))| tracker.step(&refs[i % k], u, cfg, rng))
                 .collect();
             for (i, (terms, ending)) in results.iter().enumerate() {
                 let total = terms.total();
@@ -344,10 +369,10 @@ impl Trainer {
                     ended_lengths += self.episode_steps[i];
                     if matches!(ending, Ending::Failed | Ending::Diverged) {
                         log.failures += 1;
-                        self.sampler.record_failure(self.trackers[i].frame);
+                        let c = self.clip_of(i);
+                        self.samplers[c].record_failure(self.trackers[i].frame);
                     }
-                    let start = self.sampler.sample(&self.cfg, &mut self.rng);
-                    self.trackers[i].reset(&self.reference, start, &self.cfg, &mut self.rngs[i])?;
+                    self.reset_env(i)?;
                     self.episode_steps[i] = 0;
                 }
             }
@@ -372,7 +397,7 @@ impl Trainer {
                 ),
             });
         }
-        self.sampler.end_iteration(&self.cfg);
+        self.samplers.iter_mut().for_each(|s| s.end_iteration(&self.cfg));
         self.iteration += 1;
         self.env_steps += (e * horizon) as u64;
         let n = (e * horizon) as f64;
@@ -401,7 +426,11 @@ impl Trainer {
             ("obs_var", Dtype::F64, f64s(&p.normalizer.var)),
             ("adam_m", Dtype::F32, f32s(&self.opt.adam.m)),
             ("adam_v", Dtype::F32, f32s(&self.opt.adam.v)),
-            ("start_failures", Dtype::F64, f64s(&self.sampler.failures)),
+            (
+                "start_failures",
+                Dtype::F64,
+                f64s(&self.samplers.iter().flat_map(|s| s.failures.clone()).collect::<Vec<_>>()),
+            ),
         ];
         let views: Vec<(&str, TensorView)> = tensors
             .iter()
@@ -413,8 +442,8 @@ impl Trainer {
         let meta: HashMap<String, String> = [
             ("format", POLICY_FORMAT.to_string()),
             ("config", serde_json::to_string(&self.cfg).expect("json")),
-            ("clip", self.reference.clip.name.clone()),
-            ("clip_frames", self.reference.len().to_string()),
+            ("clip", self.clip_names()),
+            ("clip_frames", self.clip_frames()),
             ("obs_dim", OBS_DIM.to_string()),
             ("act_dim", NUM_DOFS.to_string()),
             ("iteration", self.iteration.to_string()),
@@ -432,18 +461,32 @@ impl Trainer {
         Ok(())
     }
 
-    /// Continues a run from a checkpoint written by [`Trainer::save`] for the same clip and
+    /// Clip names, comma-separated (checkpoint metadata).
+    fn clip_names(&self) -> String {
+        self.references.iter().map(|r| r.clip.name.clone()).collect::<Vec<_>>().join(",")
+    }
+
+    fn clip_frames(&self) -> String {
+        self.references.iter().map(|r| r.len().to_string()).collect::<Vec<_>>().join(",")
+    }
+
+    /// Continues a run from a checkpoint written by [`Trainer::save`] for the same clips and
     /// network shape; anything else is refused with the reason.
-    pub fn resume(humanoid: &Arc<Humanoid>, clip: Clip, cfg: TrackConfig, path: &Path) -> Result<Self, TrackError> {
+    pub fn resume(
+        humanoid: &Arc<Humanoid>,
+        clips: Vec<Clip>,
+        cfg: TrackConfig,
+        path: &Path,
+    ) -> Result<Self, TrackError> {
         let ck = Checkpoint::read(path)?;
         let bad = |m: String| TrackError::Checkpoint { path: path.into(), message: m };
-        if ck.meta("clip")? != clip.name || ck.meta("clip_frames")? != clip.len().to_string() {
+        let names = clips.iter().map(|c| c.name.clone()).collect::<Vec<_>>().join(",");
+        let frames = clips.iter().map(|c| c.len().to_string()).collect::<Vec<_>>().join(",");
+        if ck.meta("clip")? != names || ck.meta("clip_frames")? != frames {
             return Err(bad(format!(
-                "checkpoint is for clip '{}' ({} frames), not '{}' ({} frames)",
+                "checkpoint is for clip '{}' ({} frames), not '{names}' ({frames} frames)",
                 ck.meta("clip")?,
-                ck.meta("clip_frames")?,
-                clip.name,
-                clip.len()
+                ck.meta("clip_frames")?
             )));
         }
         let saved: TrackConfig = serde_json::from_str(&ck.meta("config")?).map_err(|e| bad(format!("config: {e}")))?;
@@ -453,13 +496,17 @@ impl Trainer {
                 saved.hidden, saved.envs, cfg.hidden, cfg.envs
             )));
         }
-        let mut trainer = Self::new(humanoid, clip, cfg)?;
+        let mut trainer = Self::new(humanoid, clips, cfg)?;
         ck.load_policy(&mut trainer.policy)?;
         trainer.opt.adam.m = ck.f32s("adam_m", trainer.policy.num_params())?;
         trainer.opt.adam.v = ck.f32s("adam_v", trainer.policy.num_params())?;
         trainer.opt.adam.t = ck.number("adam_t")? as u64;
         trainer.opt.lr = ck.number("learning_rate")? as f32;
-        trainer.sampler.failures = ck.f64s("start_failures", trainer.sampler.failures.len())?;
+        let total = trainer.samplers.iter().map(|s| s.failures.len()).sum();
+        let mut failures = ck.f64s("start_failures", total)?.into_iter();
+        for sampler in &mut trainer.samplers {
+            sampler.failures = failures.by_ref().take(sampler.failures.len()).collect();
+        }
         trainer.iteration = ck.number("iteration")? as usize;
         trainer.env_steps = ck.number("env_steps")? as u64;
         // Fresh episodes, with random streams advanced by the iteration count.
@@ -644,7 +691,7 @@ pub fn evaluate(
 /// (stepping, rewards, observations), the policy's forward passes, and the PPO update.
 pub fn bench(
     humanoid: &Arc<Humanoid>,
-    clip: Clip,
+    clips: Vec<Clip>,
     cfg: TrackConfig,
     iterations: usize,
     threads: usize,
@@ -654,7 +701,7 @@ pub fn bench(
         .build()
         .map_err(|e| TrackError::Invalid(format!("thread pool: {e}")))?;
     pool.install(|| {
-        let mut trainer = Trainer::new(humanoid, clip, cfg)?;
+        let mut trainer = Trainer::new(humanoid, clips, cfg)?;
         trainer.iterate()?;
         let logs: Vec<IterationLog> = (0..iterations.max(1)).map(|_| trainer.iterate()).collect::<Result<_, _>>()?;
         let median = |f: fn(&IterationLog) -> f32| {

@@ -63,13 +63,13 @@ fn training_checkpoints_resumes_and_refuses_bad_checkpoints() {
     let (h, clip) = setup();
     let dir = std::env::temp_dir().join(format!("flowmimic-track-{}", std::process::id()));
     let path = dir.join("policy.safetensors");
-    let mut trainer = Trainer::new(&h, clip.clone(), tiny()).unwrap();
+    let mut trainer = Trainer::new(&h, vec![clip.clone()], tiny()).unwrap();
     for _ in 0..2 {
         let log = trainer.iterate().unwrap();
         assert!(log.mean_reward.is_finite() && log.update.value_loss.is_finite() && log.update.kl.is_finite());
     }
     trainer.save(&path).unwrap();
-    let resumed = Trainer::resume(&h, clip.clone(), tiny(), &path).unwrap();
+    let resumed = Trainer::resume(&h, vec![clip.clone()], tiny(), &path).unwrap();
     assert_eq!((resumed.iteration, resumed.env_steps), (2, 64));
     assert_eq!(resumed.policy.params(), trainer.policy.params());
     assert_eq!(resumed.policy.normalizer.mean, trainer.policy.normalizer.mean);
@@ -79,14 +79,14 @@ fn training_checkpoints_resumes_and_refuses_bad_checkpoints() {
     assert_eq!(policy.act(&obs, 1), trainer.policy.act(&obs, 1));
     // A checkpoint for another clip, another network, or a damaged file is refused by name.
     let other = generate(&h, "other", &GaitParams { duration: 3.0, ..Default::default() }).unwrap().0;
-    let err = Trainer::resume(&h, other, tiny(), &path).err().unwrap().to_string();
+    let err = Trainer::resume(&h, vec![other], tiny(), &path).err().unwrap().to_string();
     assert!(err.contains("policy.safetensors") && err.contains("clip"), "{err}");
     let wider = TrackConfig { hidden: vec![64, 64], ..tiny() };
-    assert!(Trainer::resume(&h, clip.clone(), wider, &path).err().unwrap().to_string().contains("hidden"));
+    assert!(Trainer::resume(&h, vec![clip.clone()], wider, &path).err().unwrap().to_string().contains("hidden"));
     let bytes = std::fs::read(&path).unwrap();
     let broken = dir.join("broken.safetensors");
     std::fs::write(&broken, &bytes[..bytes.len() - 100]).unwrap();
-    let err = Trainer::resume(&h, clip, tiny(), &broken).err().unwrap().to_string();
+    let err = Trainer::resume(&h, vec![clip], tiny(), &broken).err().unwrap().to_string();
     assert!(err.contains("broken.safetensors"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
@@ -95,6 +95,26 @@ fn training_checkpoints_resumes_and_refuses_bad_checkpoints() {
 fn bad_config_is_refused() {
     let (h, clip) = setup();
     for cfg in [TrackConfig { envs: 0, ..tiny() }, TrackConfig { hidden: vec![], ..tiny() }] {
-        assert!(Trainer::new(&h, clip.clone(), cfg).is_err());
+        assert!(Trainer::new(&h, vec![clip.clone()], cfg).is_err());
     }
+    assert!(Trainer::new(&h, vec![], tiny()).is_err(), "no clip");
+    assert!(Trainer::new(&h, vec![clip; 5], tiny()).is_err(), "more clips than environments");
+}
+
+#[test]
+fn one_policy_trains_on_several_clips() {
+    let (h, a) = setup();
+    let b = generate(&h, "back", &GaitParams { speed: -0.5, duration: 1.5, ..Default::default() }).unwrap().0;
+    let mut trainer = Trainer::new(&h, vec![a.clone(), b.clone()], tiny()).unwrap();
+    assert_eq!(trainer.references.len(), 2);
+    let log = trainer.iterate().unwrap();
+    assert!(log.mean_reward.is_finite());
+    let dir = std::env::temp_dir().join(format!("flowmimic-track-multi-{}", std::process::id()));
+    let path = dir.join("policy.safetensors");
+    trainer.save(&path).unwrap();
+    let resumed = Trainer::resume(&h, vec![a.clone(), b.clone()], tiny(), &path).unwrap();
+    assert_eq!(resumed.policy.params(), trainer.policy.params());
+    let err = Trainer::resume(&h, vec![b, a], tiny(), &path).err().unwrap().to_string();
+    assert!(err.contains("walk,back"), "clips in another order are another run: {err}");
+    std::fs::remove_dir_all(&dir).ok();
 }
