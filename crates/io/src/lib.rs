@@ -21,11 +21,9 @@ impl std::fmt::Display for FileError {
     }
 }
 
-impl std::error::Error for FileError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        Some(&self.source)
-    }
-}
+// The message already carries the cause, so it is not also reported as `source()` (error
+// chains would print it twice).
+impl std::error::Error for FileError {}
 
 fn at(path: &Path) -> impl FnOnce(io::Error) -> FileError + '_ {
     move |source| FileError { path: path.to_path_buf(), source }
