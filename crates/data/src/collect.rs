@@ -63,6 +63,7 @@ struct Lane {
     tracker: Tracker,
     rng: StdRng,
     sigma: f32,
+    noise: Normal<f32>,
     shard: Shard,
     episodes: usize,
     falls: usize,
@@ -86,15 +87,19 @@ pub fn collect(
         .iter()
         .flat_map(|&(sigma, count)| std::iter::repeat_n(sigma, count))
         .enumerate()
-        .map(|(i, sigma)| Lane {
-            tracker: Tracker::new(humanoid),
-            rng: StdRng::seed_from_u64(cfg.seed.wrapping_mul(7919).wrapping_add(i as u64)),
-            sigma,
-            shard: Shard::default(),
-            episodes: 1,
-            falls: 0,
+        .map(|(i, sigma)| {
+            Ok(Lane {
+                tracker: Tracker::new(humanoid),
+                rng: StdRng::seed_from_u64(cfg.seed.wrapping_mul(7919).wrapping_add(i as u64)),
+                sigma,
+                noise: Normal::new(0.0, sigma)
+                    .map_err(|e| DataError::Invalid(format!("collect.noise sigma {sigma}: {e}")))?,
+                shard: Shard::default(),
+                episodes: 1,
+                falls: 0,
+            })
         })
-        .collect();
+        .collect::<Result<_, DataError>>()?;
     if lanes.is_empty() {
         return Err(DataError::Invalid("collect.noise allocates no environments".into()));
     }
@@ -113,11 +118,9 @@ pub fn collect(
             .zip(u.par_chunks(NUM_DOFS))
             .map(|(lane, u)| {
                 let clean = lane.tracker.action(&reference, u, &run_cfg);
-                let noise = Normal::new(0.0, lane.sigma)
-                    .map_err(|e| DataError::Invalid(format!("sigma {}: {e}", lane.sigma)))?;
                 // The expert's output u is in units of action_scale radians.
                 let per_unit = (cfg.noise_unit_rad / run_cfg.action_scale) as f32;
-                let noisy_u: Vec<f32> = u.iter().map(|x| x + per_unit * noise.sample(&mut lane.rng)).collect();
+                let noisy_u: Vec<f32> = u.iter().map(|x| x + per_unit * lane.noise.sample(&mut lane.rng)).collect();
                 let noisy = lane.tracker.action(&reference, &noisy_u, &run_cfg);
                 let env = lane.tracker.env();
                 let k = env.bodies();

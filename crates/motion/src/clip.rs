@@ -101,16 +101,22 @@ impl Clip {
             bodies: Vec::new(),
             cycle,
         };
-        let n = clip.qpos.len() as isize;
-        let dt = 1.0 / CONTROL_HZ;
-        clip.qvel = (0..n)
-            .map(|t| {
-                let (a, b) = if cyclic { (t - 1, t + 1) } else { ((t - 1).max(0), (t + 1).min(n - 1)) };
-                velocity(&clip.frame(a), &clip.frame(b), (b - a) as f64 * dt)
-            })
-            .collect();
+        clip.qvel = clip.central_velocities();
         clip.derive_bodies(humanoid)?;
         Ok(clip)
+    }
+
+    /// Velocities by central differences, wrapping around the loop for cyclic clips and
+    /// one-sided at the ends otherwise.
+    fn central_velocities(&self) -> Vec<Vec<f64>> {
+        let n = self.qpos.len() as isize;
+        let dt = 1.0 / CONTROL_HZ;
+        (0..n)
+            .map(|t| {
+                let (a, b) = if self.cyclic { (t - 1, t + 1) } else { ((t - 1).max(0), (t + 1).min(n - 1)) };
+                velocity(&self.frame(a), &self.frame(b), (b - a) as f64 * dt)
+            })
+            .collect()
     }
 
     fn derive_bodies(&mut self, humanoid: &Arc<Humanoid>) -> Result<(), MotionError> {
@@ -160,8 +166,10 @@ impl Clip {
             return Ok(self.clone());
         }
         let qpos = (0..frames as isize).map(|i| self.frame(i)).collect();
-        let mut clip = Self::from_qpos(humanoid, &self.name, &self.source, false, qpos)?;
-        // Keep the loop's exact velocities rather than the one-sided ones at the new ends.
+        let (name, source) = (self.name.clone(), self.source.clone());
+        let mut clip = Self { name, source, cyclic: false, qpos, qvel: Vec::new(), bodies: Vec::new(), cycle: None };
+        clip.qvel = clip.central_velocities();
+        // Keep the loop's exact velocity at the start rather than a one-sided one.
         clip.qvel[0] = self.qvel[0].clone();
         clip.derive_bodies(humanoid)?;
         Ok(clip)

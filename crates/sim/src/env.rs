@@ -86,22 +86,6 @@ impl Env {
         self.advance()
     }
 
-    /// One control step with raw PD targets in radians (no clipping to the action range).
-    pub fn step_targets(&mut self, q_des: &[f64]) -> Result<(), SimError> {
-        if q_des.len() != NUM_DOFS {
-            return Err(SimError::ActionShape { got: q_des.len() });
-        }
-        if let Some(i) = q_des.iter().position(|a| !a.is_finite()) {
-            return Err(SimError::NonFiniteAction {
-                index: i,
-                hinge: hinge_names()[i].clone(),
-                value: q_des[i] as f32,
-            });
-        }
-        self.data.ctrl_mut().copy_from_slice(q_des);
-        self.advance()
-    }
-
     fn advance(&mut self) -> Result<(), SimError> {
         let bad_before = self.bad_physics_warnings();
         for _ in 0..self.humanoid.config().substeps {

@@ -184,16 +184,17 @@ impl Tracker {
         if self.advance(&a, cfg, rng).is_err() {
             return (RewardTerms::default(), Ending::Diverged);
         }
-        let terms = self.rewards(reference, u, cfg);
+        let k = self.env.bodies();
+        let terms = self.rewards(&k, reference, u, cfg);
         self.prev_residual.copy_from_slice(u);
-        (terms, self.ending(reference, cfg))
+        (terms, self.ending(&k, reference, cfg))
     }
 
     /// One control step executing environment action `a` as given (data collection executes
     /// noisy actions this way); no rewards.
     pub fn step_action(&mut self, reference: &Reference, a: &[f32], cfg: &TrackConfig, rng: &mut impl Rng) -> Ending {
         match self.advance(a, cfg, rng) {
-            Ok(()) => self.ending(reference, cfg),
+            Ok(()) => self.ending(&self.env.bodies(), reference, cfg),
             Err(_) => Ending::Diverged,
         }
     }
@@ -210,8 +211,7 @@ impl Tracker {
     }
 
     /// Failure (pelvis height, tilt or end-effector height off the reference), clip end, or on.
-    fn ending(&self, reference: &Reference, cfg: &TrackConfig) -> Ending {
-        let k = self.env.bodies();
+    fn ending(&self, k: &BodyKinematics, reference: &Reference, cfg: &TrackConfig) -> Ending {
         let r = &reference.clip.bodies[self.frame];
         let p = body::PELVIS;
         let failed = (k.pos[p].z - r.pos[p].z).abs() > cfg.max_height_error
@@ -228,8 +228,7 @@ impl Tracker {
         }
     }
 
-    fn rewards(&self, reference: &Reference, u: &[f32], cfg: &TrackConfig) -> RewardTerms {
-        let k = self.env.bodies();
+    fn rewards(&self, k: &BodyKinematics, reference: &Reference, u: &[f32], cfg: &TrackConfig) -> RewardTerms {
         let r = &reference.clip.bodies[self.frame];
         let (own, theirs) = (k.frame(), reference.frames_ahead[self.frame]);
         let p = body::PELVIS;
