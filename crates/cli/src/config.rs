@@ -5,6 +5,7 @@
 
 use anyhow::{Context, Result, bail};
 use flowmimic_data::CollectConfig;
+use flowmimic_model::{ModelConfig, TrainConfig};
 use flowmimic_sim::SimConfig;
 use flowmimic_track::TrackConfig;
 use serde::{Deserialize, Serialize};
@@ -19,6 +20,10 @@ pub struct Config {
     pub track: TrackConfig,
     #[serde(default)]
     pub collect: CollectConfig,
+    #[serde(default)]
+    pub model: ModelConfig,
+    #[serde(default)]
+    pub train: TrainConfig,
 }
 
 /// The built-in presets, embedded from `configs/`.

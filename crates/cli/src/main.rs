@@ -4,7 +4,11 @@
 
 mod config;
 mod data;
+mod eval;
+mod model;
 mod motion;
+mod progress;
+mod run;
 mod track;
 
 use anyhow::Result;
@@ -55,6 +59,35 @@ enum Command {
         #[arg(short, long, default_value = "runs/data")]
         out: PathBuf,
     },
+    /// Train the trajectory model (a Transformer over history and future state-action tokens)
+    /// on a dataset with Flow Matching or DDPM. Writes <out>/model.safetensors, stats.safetensors,
+    /// checkpoint.safetensors (atomically, every train.checkpoint_every steps), log.csv,
+    /// config.json and loss.png/svg.
+    Train {
+        /// Dataset directory (`flowmimic collect` writes it).
+        #[arg(default_value = "runs/data")]
+        dataset: PathBuf,
+        /// Generative objective: fm (Flow Matching) or ddpm.
+        #[arg(long, default_value = "fm")]
+        objective: String,
+        /// Model directory; default runs/model/<objective>.
+        #[arg(short, long)]
+        out: Option<PathBuf>,
+        /// Optimiser steps (overrides the preset's train.steps).
+        #[arg(long)]
+        steps: Option<usize>,
+        /// Continue from <out>/checkpoint.safetensors.
+        #[arg(long)]
+        resume: bool,
+    },
+    /// Drive the humanoid with a trained model, optionally steered by a task (joystick, reach,
+    /// waypoint, or walk-to-a-point-while-reaching). Writes the rollout (states, actions,
+    /// commands, timings) for `flowmimic eval` and the viewers.
+    Run(run::RunArgs),
+    /// The paper's experiments: survival, joystick, reach, compose, quality, latency. Each
+    /// writes CSV, JSON and plots and appends to <out>/report.md.
+    #[command(subcommand)]
+    Eval(eval::EvalCommand),
     /// Rollout datasets: inspect them, compute window statistics.
     #[command(subcommand)]
     Dataset(data::DatasetCommand),
@@ -88,6 +121,13 @@ enum SimCommand {
 
 #[derive(Subcommand)]
 enum BenchCommand {
+    /// Trajectory-model sampling latency (batch 1 and 64, NFE 1-20, FM and DDPM) for the
+    /// preset's model and the paper's, with FLOPs and the fraction of measured SGEMM peak.
+    Model {
+        /// Timed calls per row (the median is reported).
+        #[arg(long, default_value_t = 5)]
+        repeats: usize,
+    },
     /// PPO training throughput on 1 and all cores, split into physics, network and update.
     Track {
         /// Timed iterations per row (the median is reported).
@@ -120,6 +160,16 @@ fn run(cli: Cli) -> Result<()> {
             data::run_collect(&Humanoid::new(config.sim)?, runs, out, config.collect.clone())?
         }
         Command::Dataset(cmd) => data::run_dataset(cmd)?,
+        Command::Eval(cmd) => eval::run(cmd, &Humanoid::new(config.sim)?)?,
+        Command::Run(args) => run::run(args, &Humanoid::new(config.sim)?)?,
+        Command::Train { dataset, objective, out, steps, resume } => {
+            let out = out.unwrap_or_else(|| model::default_out(&objective));
+            model::train(&dataset, &objective, &out, steps, resume, config.model, config.train.clone())?
+        }
+        Command::Bench(BenchCommand::Model { repeats }) => {
+            let paper = Config::load("paper", None)?.model;
+            model::bench(&[(cli.settings.preset.as_str(), config.model), ("paper", paper)], repeats)?
+        }
         Command::Config => print!("{}", toml::to_string(&config)?),
         Command::Sim(cmd) => sim(cmd, &config)?,
         Command::Motion(cmd) => motion::run(cmd, &Humanoid::new(config.sim)?)?,

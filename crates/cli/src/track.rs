@@ -1,5 +1,6 @@
 //! `flowmimic track ...`: train and evaluate PPO tracking experts.
 
+use crate::progress::{CsvLog, Progress};
 use anyhow::{Context, Result};
 use clap::Subcommand;
 use flowmimic_motion::{Clip, GaitParams};
@@ -7,8 +8,6 @@ use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::Humanoid;
 use flowmimic_track::train::{Checkpoint, IterationLog};
 use flowmimic_track::{TrackConfig, Trainer, evaluate};
-use indicatif::{ProgressBar, ProgressStyle};
-use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -68,14 +67,7 @@ pub(crate) const RUN_POLICY: &str = "policy.safetensors";
 
 /// Learning curves from the CSV rows: reward, episode length and tracking error.
 fn plot_curves(out: &Path, rows: &[String]) -> Result<()> {
-    let column = |k: usize| -> Vec<(f64, f64)> {
-        rows.iter()
-            .filter_map(|r| {
-                let f: Vec<f64> = r.split(',').filter_map(|x| x.parse().ok()).collect();
-                (f.len() > k).then(|| (f[1], f[k]))
-            })
-            .collect()
-    };
+    let column = |k: usize| crate::progress::column(rows, 1, k);
     for (stem, title, y, k) in [
         ("reward", "mean reward per step", "reward (max 5)", 2),
         ("episode_length", "mean length of ended episodes", "control steps", 5),
@@ -106,19 +98,8 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
             }
             let policy_path = out.join(RUN_POLICY);
             let log_path = out.join("log.csv");
-            let mut rows: Vec<String> = Vec::new();
             let mut trainer = if resume {
                 let t = Trainer::resume(humanoid, clips, cfg.clone(), &policy_path)?;
-                let text = flowmimic_io::read_to_string(&log_path).unwrap_or_default();
-                // Keep the log up to the checkpoint's iteration.
-                rows = text
-                    .lines()
-                    .skip(1)
-                    .filter(|l| {
-                        l.split(',').next().and_then(|i| i.parse::<usize>().ok()).is_some_and(|i| i <= t.iteration)
-                    })
-                    .map(String::from)
-                    .collect();
                 eprintln!("resumed {} at iteration {} ({} env steps)", policy_path.display(), t.iteration, t.env_steps);
                 t
             } else {
@@ -130,6 +111,7 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
                 }
                 Trainer::new(humanoid, clips, cfg.clone())?
             };
+            let mut log = CsvLog::open(log_path.clone(), IterationLog::CSV_HEADER, resume.then_some(trainer.iteration));
             flowmimic_io::write_atomic(&out.join("config.json"), serde_json::to_string_pretty(&cfg)?.as_bytes())?;
             for (k, reference) in trainer.references.iter().enumerate() {
                 reference.clip.save(&out.join(run_clip_file(k)))?;
@@ -146,56 +128,32 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
                 cfg.horizon,
                 trainer.policy.num_params()
             );
-            let started = std::time::Instant::now();
-            // A bar on a terminal; one line per iteration in logs (nohup, CI).
-            let bar = std::io::stderr().is_terminal().then(|| {
-                let bar = ProgressBar::new(cfg.iterations as u64).with_position(trainer.iteration as u64);
-                bar.set_style(
-                    ProgressStyle::with_template("{bar:30} {pos}/{len} [{elapsed} < {eta}] {msg}").expect("template"),
-                );
-                bar
-            });
+            let progress = Progress::new(cfg.iterations, trainer.iteration);
             while trainer.iteration < cfg.iterations {
-                let log: IterationLog = trainer.iterate().context("training stopped; the last checkpoint is intact")?;
-                rows.push(log.csv_row());
+                let line: IterationLog =
+                    trainer.iterate().context("training stopped; the last checkpoint is intact")?;
+                log.rows.push(line.csv_row());
                 let last = trainer.iteration == cfg.iterations;
                 if trainer.iteration % cfg.checkpoint_every.max(1) == 0 || last {
                     trainer.save(&policy_path)?;
-                    let csv = std::iter::once(IterationLog::CSV_HEADER.to_string())
-                        .chain(rows.iter().cloned())
-                        .collect::<Vec<_>>()
-                        .join("\n");
-                    flowmimic_io::write_atomic(&log_path, format!("{csv}\n").as_bytes())?;
-                    plot_curves(&out, &rows)?;
+                    log.save()?;
+                    plot_curves(&out, &log.rows)?;
                 }
                 let status = format!(
                     "{:>9} steps  reward {:.3}  episode {:>5.1}  fails {:>3}/{:<3}  body err {:.3} m  kl {:.4}  lr {:.1e}  {:>5.0} steps/s",
-                    log.env_steps,
-                    log.mean_reward,
-                    log.episode_length,
-                    log.failures,
-                    log.episodes,
-                    log.body_pos_error,
-                    log.update.kl,
-                    log.update.learning_rate,
-                    log.steps_per_second,
+                    line.env_steps,
+                    line.mean_reward,
+                    line.episode_length,
+                    line.failures,
+                    line.episodes,
+                    line.body_pos_error,
+                    line.update.kl,
+                    line.update.learning_rate,
+                    line.steps_per_second,
                 );
-                match &bar {
-                    Some(bar) => {
-                        bar.set_position(trainer.iteration as u64);
-                        bar.set_message(status);
-                    }
-                    None => eprintln!(
-                        "[{:>5}/{}] {status}  {:.0} s",
-                        log.iteration,
-                        cfg.iterations,
-                        started.elapsed().as_secs_f64()
-                    ),
-                }
+                progress.update(trainer.iteration, &status);
             }
-            if let Some(bar) = bar {
-                bar.finish();
-            }
+            progress.finish();
             eprintln!("wrote {} and {}", policy_path.display(), log_path.display());
         }
         TrackCommand::Plot { run } => {

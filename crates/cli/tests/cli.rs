@@ -54,7 +54,61 @@ fn stages_connect_through_their_files() {
     assert!(inspect.contains("feature ranges") && dir.join("data/coverage_root_speed.png").exists(), "{inspect}");
     let stats = ok(&dir, &["dataset", "stats", "data", "--history", "2", "--horizon", "3"]);
     assert!(stats.contains("windows") && dir.join("data/stats-N2-H3.safetensors").exists(), "{stats}");
+    trajectory_model_trains_resumes_and_drives(&dir);
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `train` and `run` on the tiny dataset that `collect` wrote.
+fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
+    let train = ok(dir, &["train", "data", "--objective", "fm", "-o", "fm"]);
+    assert!(train.contains("parameters") && train.contains("[   60/60]"), "{train}");
+    for file in ["model.safetensors", "stats.safetensors", "checkpoint.safetensors", "log.csv", "loss.png"] {
+        assert!(dir.join("fm").join(file).exists(), "fm/{file} missing");
+    }
+    // The training loss falls (first logged mean vs last).
+    let log = std::fs::read_to_string(dir.join("fm/log.csv")).unwrap();
+    let losses: Vec<f64> = log.lines().skip(1).map(|l| l.split(',').nth(1).unwrap().parse().unwrap()).collect();
+    assert!(losses.len() == 3 && losses[2] < 0.9 * losses[0], "losses {losses:?}");
+    // Same seed, same weights; a run stopped at 20 steps and resumed to 60 ends bit-identical.
+    ok(dir, &["train", "data", "--objective", "fm", "-o", "fm-part", "--steps", "20"]);
+    let (refused, text) = flowmimic(dir, &["train", "data", "--objective", "fm", "-o", "fm-part"]);
+    assert!(!refused && text.contains("--resume"), "{text}");
+    let (refused, text) = flowmimic(dir, &["train", "data", "--objective", "ddpm", "-o", "fm-part", "--resume"]);
+    assert!(!refused && text.contains("objective fm"), "{text}");
+    ok(dir, &["train", "data", "--objective", "fm", "-o", "fm-part", "--resume"]);
+    let bytes = |p: &str| std::fs::read(dir.join(p)).unwrap();
+    assert!(bytes("fm/model.safetensors") == bytes("fm-part/model.safetensors"), "resume is not exact");
+    let ddpm = ok(dir, &["train", "data", "--objective", "ddpm", "-o", "ddpm"]);
+    assert!(ddpm.contains("DDPM Transformer"), "{ddpm}");
+    // A model trained for another window refuses to resume on these settings.
+    std::fs::write(dir.join("longer.toml"), "[model]\nhorizon = 3\n").unwrap();
+    let (refused, text) = flowmimic(dir, &["--config", "longer.toml", "train", "data", "-o", "fm", "--resume"]);
+    assert!(!refused && text.contains("checkpoint.safetensors") && text.contains("horizon: 3"), "{text}");
+    // Both objectives drive the humanoid; the rollout holds every step's record.
+    for model in ["fm", "ddpm"] {
+        let out = format!("{model}.rollout.safetensors");
+        let args = ["run", "--model", model, "--task", "joystick", "--seconds", "0.5", "--envs", "2", "-o", &out];
+        let run = ok(dir, &args);
+        assert!(run.contains("environments fell") && dir.join(&out).exists(), "{run}");
+    }
+    // Evaluations write their raw trials, summary, plot and report, and reuse stored points.
+    let models = ["--model", "fm=fm", "--model", "ddpm=ddpm"];
+    let survival =
+        [&["eval", "survival", "--nfe", "1,2", "--trials", "2", "--seconds", "0.5", "-o", "eval"], &models[..]]
+            .concat();
+    let text = ok(dir, &survival);
+    assert!(text.contains("| fm | fm | 2 |") && text.contains("| ddpm | ddpm | 1 |"), "{text}");
+    for file in ["survival.csv", "survival.json", "survival.png", "survival.svg", "report.md"] {
+        assert!(dir.join("eval").join(file).exists(), "eval/{file} missing");
+    }
+    assert_eq!(std::fs::read_to_string(dir.join("eval/survival.csv")).unwrap().lines().count(), 1 + 2 * 2 * 2);
+    assert!(ok(dir, &survival).contains("reusing 2 stored trials"));
+    let text = ok(dir, &["eval", "joystick", "--model", "fm=fm", "--scales", "0,10", "--trials", "1", "-o", "eval"]);
+    assert!(text.contains("velocity RMSE") && dir.join("eval/joystick.png").exists(), "{text}");
+    let (refused, text) = flowmimic(dir, &["run", "--model", "fm", "--task", "reach", "--target", "1,NaN,1"]);
+    assert!(!refused && text.contains("NaN"), "{text}");
+    let (refused, text) = flowmimic(dir, &["run", "--model", "fm", "--task", "joystick", "--schedule", "3:9,0,0"]);
+    assert!(!refused && text.contains("joystick speed"), "{text}");
 }
 
 #[test]

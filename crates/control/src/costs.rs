@@ -1,7 +1,7 @@
 //! Task costs `G(tau)` and their gradients, for test-time guidance (`v' = v - w grad G`).
 //!
-//! Each cost reads a trajectory laid out by [`Layout`] in physical units; [`Normalised`] maps a
-//! cost onto the model's normalised coordinates. Gradients are analytic; the tests check each
+//! Each cost reads a trajectory laid out by [`Layout`] in physical units (the model maps the
+//! gradient onto its normalised coordinates). Gradients are analytic; the tests check each
 //! against finite differences.
 
 use crate::ControlError;
@@ -263,27 +263,5 @@ impl Cost for Sum {
             c.add_grad(tau, &mut part);
             grad.iter_mut().zip(&part).for_each(|(g, p)| *g += w * p);
         }
-    }
-}
-
-/// A cost of the model's normalised trajectory `x`, where `tau = mean + std * x`:
-/// `grad_x G = std * grad_tau G` (guidance acts in the model's coordinates).
-pub struct Normalised<'a, C: Cost> {
-    pub cost: &'a C,
-    pub mean: &'a [f32],
-    pub std: &'a [f32],
-}
-
-impl<C: Cost> Normalised<'_, C> {
-    /// Gradients for `n` normalised trajectories stacked row after row.
-    pub fn grad_batch(&self, x: &[f32], n: usize) -> Vec<f32> {
-        let len = self.mean.len();
-        let mut out = vec![0.0; n * len];
-        for (row, g) in x.chunks(len).zip(out.chunks_mut(len)) {
-            let tau: Vec<f32> = row.iter().zip(self.mean.iter().zip(self.std)).map(|(x, (m, s))| m + s * x).collect();
-            self.cost.add_grad(&tau, g);
-            g.iter_mut().zip(self.std).for_each(|(g, s)| *g *= s);
-        }
-        out
     }
 }

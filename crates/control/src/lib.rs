@@ -1,21 +1,35 @@
-//! Guided control: the task costs that steer the walking-only trajectory model at test time.
+//! Guided control: the trajectory model drives the humanoid, steered by task costs at test time.
 //!
+//! - [`controller`]: the receding-horizon loop over a batch of environments;
+//! - [`task`]: joystick schedules, hand targets and waypoints in the world, turned into costs;
+//! - [`rollout`]: the file a run writes (`flowmimic-rollout/1`);
 //! - [`layout`]: where the predicted actions and states sit in a trajectory;
 //! - [`history`]: the live conditioning `O_t`, built exactly as the training windows are;
 //! - [`costs`]: joystick velocity (paper eq. 7) and turn rate, end-effector reach (eq. 8),
-//!   waypoint navigation (BeyondMimic), weighted sums, and the map onto the model's normalised
-//!   coordinates.
+//!   waypoint navigation (BeyondMimic), and weighted sums.
 
+pub mod controller;
 pub mod costs;
 pub mod history;
 pub mod layout;
+pub mod rollout;
+pub mod task;
 
-pub use costs::{Cost, Joystick, Normalised, Reach, Sum, TurnRate, Waypoint};
+pub use controller::{ControlConfig, StepReport, run, start_from_clip};
+pub use costs::{Cost, Joystick, Reach, Sum, TurnRate, Waypoint};
 pub use history::History;
 pub use layout::Layout;
+pub use rollout::{Rollout, RolloutInfo};
+pub use task::{Hand, JoystickSegment, Task};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ControlError {
     #[error("bad command: {what} is {value}")]
     BadCommand { what: &'static str, value: f64 },
+    #[error("cannot start: {0}")]
+    Start(String),
+    #[error("the model produced a non-finite action (environment {env}, step {step}, hinge {index})")]
+    NonFinite { env: usize, step: usize, index: usize },
+    #[error(transparent)]
+    Sim(#[from] flowmimic_sim::SimError),
 }

@@ -98,20 +98,3 @@ fn bad_commands_are_refused_with_the_value() {
     assert!(Waypoint::new(layout, [f64::INFINITY, 0.0]).is_err());
     assert!(TurnRate::new(layout, 7.0).is_err());
 }
-
-#[test]
-fn normalised_gradients_scale_by_the_std() {
-    let layout = Layout { horizon: 2 };
-    let cost = Joystick::new(layout, 1.0, 0.0).unwrap();
-    let mean = vec![0.5f32; layout.len()];
-    let std = vec![2.0f32; layout.len()];
-    let x = vec![0.1f32; 2 * layout.len()];
-    let n = Normalised { cost: &cost, mean: &mean, std: &std };
-    let g = n.grad_batch(&x, 2);
-    let tau: Vec<f32> = x[..layout.len()].iter().map(|x| 0.5 + 2.0 * x).collect();
-    let mut raw = vec![0.0; layout.len()];
-    cost.add_grad(&tau, &mut raw);
-    for i in 0..layout.len() {
-        assert!((g[i] - 2.0 * raw[i]).abs() < 1e-6 && (g[layout.len() + i] - g[i]).abs() < 1e-6);
-    }
-}

@@ -192,6 +192,11 @@ pub struct Dataset {
 }
 
 impl Dataset {
+    /// The shards' checksums, joined: what statistics and models trained on it record.
+    pub fn shards_key(&self) -> String {
+        self.manifest.shards.iter().map(|s| s.sha256.as_str()).collect::<Vec<_>>().join(",")
+    }
+
     /// Opens `dir`, or starts an empty dataset there if it has no manifest yet.
     pub fn open_or_create(dir: &Path) -> Result<Self, DataError> {
         let path = dir.join(MANIFEST);

@@ -20,6 +20,8 @@ pub enum DataError {
     #[error(transparent)]
     Io(#[from] flowmimic_io::FileError),
     #[error(transparent)]
+    Tensors(#[from] flowmimic_io::tensors::TensorError),
+    #[error(transparent)]
     Sim(#[from] flowmimic_sim::SimError),
     #[error(transparent)]
     Track(#[from] flowmimic_track::TrackError),

@@ -6,10 +6,9 @@
 use crate::DataError;
 use crate::format::{Dataset, Shard};
 use flowmimic_geom::{DVec3, from_rotvec, rotvec, yaw_quat};
-use flowmimic_io::le;
+use flowmimic_io::tensors::{self, TensorFile};
 use flowmimic_sim::state::offset;
 use flowmimic_sim::{NUM_DOFS, STATE_DIM};
-use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 use serde::{Deserialize, Serialize};
 
 /// History length N and horizon H.
@@ -145,7 +144,7 @@ impl Stats {
     /// otherwise computed once over all shards and stored.
     pub fn of_dataset(dataset: &Dataset, spec: WindowSpec) -> Result<Self, DataError> {
         let path = dataset.dir.join(Self::file_name(spec));
-        let shards_key = dataset.manifest.shards.iter().map(|s| s.sha256.as_str()).collect::<Vec<_>>().join(",");
+        let shards_key = dataset.shards_key();
         if path.exists() {
             let (stats, key) = Self::load(&path)?;
             if key == shards_key && stats.spec == spec {
@@ -158,19 +157,9 @@ impl Stats {
         Ok(stats)
     }
 
-    fn save(&self, path: &std::path::Path, shards_key: &str) -> Result<(), DataError> {
+    /// Writes the statistics with the checksums of the shards they were computed over.
+    pub fn save(&self, path: &std::path::Path, shards_key: &str) -> Result<(), DataError> {
         let slots = self.spec.states();
-        let tensors = [
-            ("state_mean", &self.state_mean, STATE_DIM),
-            ("state_std", &self.state_std, STATE_DIM),
-            ("action_mean", &self.action_mean, NUM_DOFS),
-            ("action_std", &self.action_std, NUM_DOFS),
-        ]
-        .map(|(name, v, w)| (name, le::bytes(v.iter().copied()), w));
-        let views: Vec<(&str, TensorView)> = tensors
-            .iter()
-            .map(|(name, bytes, w)| (*name, TensorView::new(Dtype::F32, vec![slots, *w], bytes).expect("shape")))
-            .collect();
         let meta = [
             ("history", self.spec.history.to_string()),
             ("horizon", self.spec.horizon.to_string()),
@@ -178,38 +167,34 @@ impl Stats {
             ("shards_sha256", shards_key.to_string()),
         ]
         .map(|(k, v)| (k.to_string(), v));
-        let bytes = safetensors::serialize(views, Some(meta.into_iter().collect()))
-            .map_err(|e| DataError::Invalid(e.to_string()))?;
-        flowmimic_io::write_atomic(path, &bytes)?;
+        tensors::save(
+            path,
+            &[
+                ("state_mean", vec![slots, STATE_DIM], &self.state_mean),
+                ("state_std", vec![slots, STATE_DIM], &self.state_std),
+                ("action_mean", vec![slots, NUM_DOFS], &self.action_mean),
+                ("action_std", vec![slots, NUM_DOFS], &self.action_std),
+            ],
+            meta.into_iter().collect(),
+        )?;
         Ok(())
     }
 
     /// Reads a stats file, returning it and the shard checksums it was computed over.
     pub fn load(path: &std::path::Path) -> Result<(Self, String), DataError> {
-        let bad = |m: String| DataError::Shard { path: path.into(), message: m };
-        let bytes = flowmimic_io::read(path)?;
-        let (_, meta) = SafeTensors::read_metadata(&bytes).map_err(|e| bad(e.to_string()))?;
-        let meta = meta.metadata().clone().unwrap_or_default();
-        let num = |k: &str| {
-            meta.get(k).and_then(|v| v.parse::<usize>().ok()).ok_or_else(|| bad(format!("metadata '{k}' missing")))
-        };
+        let file = TensorFile::open(path)?;
+        let num =
+            |k: &str| file.meta(k)?.parse::<usize>().map_err(|_| file.error(format!("metadata '{k}' is not a count")));
         let spec = WindowSpec { history: num("history")?, horizon: num("horizon")? };
-        let st = SafeTensors::deserialize(&bytes).map_err(|e| bad(e.to_string()))?;
-        let get = |name: &str, width: usize| -> Result<Vec<f32>, DataError> {
-            let t = st.tensor(name).map_err(|e| bad(format!("tensor '{name}': {e}")))?;
-            if t.shape() != [spec.states(), width] {
-                return Err(bad(format!("tensor '{name}' has shape {:?}", t.shape())));
-            }
-            Ok(le::values(t.data()))
-        };
+        let slots = spec.states();
         let stats = Self {
             spec,
-            state_mean: get("state_mean", STATE_DIM)?,
-            state_std: get("state_std", STATE_DIM)?,
-            action_mean: get("action_mean", NUM_DOFS)?,
-            action_std: get("action_std", NUM_DOFS)?,
+            state_mean: file.f32("state_mean", &[slots, STATE_DIM])?,
+            state_std: file.f32("state_std", &[slots, STATE_DIM])?,
+            action_mean: file.f32("action_mean", &[slots, NUM_DOFS])?,
+            action_std: file.f32("action_std", &[slots, NUM_DOFS])?,
             windows: num("windows")?,
         };
-        Ok((stats, meta.get("shards_sha256").cloned().unwrap_or_default()))
+        Ok((stats, file.meta("shards_sha256").unwrap_or_default().to_string()))
     }
 }

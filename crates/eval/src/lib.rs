@@ -1,5 +1,7 @@
-//! Metrics of the paper's evaluation protocols, as plain functions of recorded rollouts, so
-//! they can be checked on hand-made traces.
+//! The paper's evaluation: metrics as plain functions of recorded rollouts (so they can be
+//! checked on hand-made traces), and the [`protocols`] that produce those rollouts.
+
+pub mod protocols;
 
 /// Mean and (population) standard deviation.
 pub fn mean_std(values: &[f64]) -> (f64, f64) {

@@ -127,3 +127,128 @@ pub mod le {
         }
     }
 }
+
+/// safetensors files of `f32` tensors with string metadata: the format of every weight,
+/// checkpoint and statistics file, readable with `safetensors.numpy.load_file` in Python.
+pub mod tensors {
+    use super::{FileError, le};
+    use safetensors::{Dtype, SafeTensors, tensor::TensorView};
+    use std::collections::HashMap;
+    use std::path::{Path, PathBuf};
+
+    /// A file that is missing, unreadable, or not what it should be.
+    #[derive(Debug)]
+    pub struct TensorError {
+        pub path: PathBuf,
+        pub message: String,
+    }
+
+    impl std::fmt::Display for TensorError {
+        fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+            write!(f, "{}: {}", self.path.display(), self.message)
+        }
+    }
+
+    impl std::error::Error for TensorError {}
+
+    impl From<FileError> for TensorError {
+        fn from(e: FileError) -> Self {
+            Self { message: e.source.to_string(), path: e.path }
+        }
+    }
+
+    /// Writes `(name, shape, values)` tensors and metadata to `path` atomically.
+    pub fn save(
+        path: &Path,
+        tensors: &[(&str, Vec<usize>, &[f32])],
+        meta: HashMap<String, String>,
+    ) -> Result<(), TensorError> {
+        let bytes: Vec<Vec<u8>> = tensors.iter().map(|(_, _, v)| le::bytes(v.iter().copied())).collect();
+        let views = tensors
+            .iter()
+            .zip(&bytes)
+            .map(|((name, shape, _), b)| {
+                let view = TensorView::new(Dtype::F32, shape.clone(), b)
+                    .map_err(|e| TensorError { path: path.into(), message: format!("tensor '{name}': {e}") })?;
+                Ok((*name, view))
+            })
+            .collect::<Result<Vec<_>, TensorError>>()?;
+        let out = safetensors::serialize(views, Some(meta))
+            .map_err(|e| TensorError { path: path.into(), message: e.to_string() })?;
+        Ok(super::write_atomic(path, &out)?)
+    }
+
+    /// A safetensors file read into memory.
+    pub struct TensorFile {
+        pub path: PathBuf,
+        bytes: Vec<u8>,
+        meta: HashMap<String, String>,
+    }
+
+    impl TensorFile {
+        pub fn open(path: &Path) -> Result<Self, TensorError> {
+            let bytes = super::read(path)?;
+            let bad = |e: safetensors::SafeTensorError| TensorError {
+                path: path.into(),
+                message: format!("not a readable safetensors file ({e})"),
+            };
+            let (_, header) = SafeTensors::read_metadata(&bytes).map_err(bad)?;
+            let meta = header.metadata().clone().unwrap_or_default();
+            SafeTensors::deserialize(&bytes).map_err(bad)?;
+            Ok(Self { path: path.into(), bytes, meta })
+        }
+
+        pub fn error(&self, message: impl Into<String>) -> TensorError {
+            TensorError { path: self.path.clone(), message: message.into() }
+        }
+
+        /// A metadata entry.
+        pub fn meta(&self, key: &str) -> Result<&str, TensorError> {
+            self.meta.get(key).map(String::as_str).ok_or_else(|| self.error(format!("metadata '{key}' is missing")))
+        }
+
+        /// The shape of tensor `name`.
+        pub fn shape(&self, name: &str) -> Result<Vec<usize>, TensorError> {
+            let st = SafeTensors::deserialize(&self.bytes).map_err(|e| self.error(e.to_string()))?;
+            let t = st.tensor(name).map_err(|_| self.error(format!("tensor '{name}' is missing")))?;
+            Ok(t.shape().to_vec())
+        }
+
+        /// The tensor `name`, which must be `f32` of exactly `shape`.
+        pub fn f32(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>, TensorError> {
+            let st = SafeTensors::deserialize(&self.bytes).map_err(|e| self.error(e.to_string()))?;
+            let t = st.tensor(name).map_err(|_| self.error(format!("tensor '{name}' is missing")))?;
+            if t.dtype() != Dtype::F32 || t.shape() != shape {
+                return Err(self.error(format!(
+                    "tensor '{name}' is {:?} {:?}, expected F32 {shape:?}",
+                    t.dtype(),
+                    t.shape()
+                )));
+            }
+            Ok(le::values(t.data()))
+        }
+    }
+
+    #[cfg(test)]
+    mod tests {
+        use super::*;
+
+        #[test]
+        fn round_trip_and_clear_errors() {
+            let dir = std::env::temp_dir().join(format!("flowmimic-tensors-{}", std::process::id()));
+            let path = dir.join("t.safetensors");
+            let meta = HashMap::from([("k".to_string(), "v".to_string())]);
+            save(&path, &[("a", vec![2, 2], &[1.0, 2.0, 3.0, 4.0])], meta).unwrap();
+            let f = TensorFile::open(&path).unwrap();
+            assert_eq!(f.f32("a", &[2, 2]).unwrap(), vec![1.0, 2.0, 3.0, 4.0]);
+            assert_eq!(f.meta("k").unwrap(), "v");
+            let err = f.f32("a", &[4]).unwrap_err().to_string();
+            assert!(err.contains("t.safetensors") && err.contains("expected F32 [4]"), "{err}");
+            assert!(f.f32("b", &[1]).unwrap_err().to_string().contains("'b' is missing"));
+            std::fs::write(&path, b"garbage").unwrap();
+            let err = TensorFile::open(&path).err().unwrap().to_string();
+            assert!(err.contains("not a readable safetensors"), "{err}");
+            std::fs::remove_dir_all(&dir).unwrap();
+        }
+    }
+}

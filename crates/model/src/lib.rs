@@ -10,10 +10,19 @@
 //! - [`Guidance`]: a cost gradient applied to the predicted clean sample on an interval of
 //!   solver steps (`v' = v - w grad G(x_hat)` for FM; the same on DDPM's `x_0` prediction).
 //!
+//! - [`trajectory`]: the Transformer over per-step tokens with the data's normalisation, and
+//!   the sampling API the controller calls;
+//! - [`train`]: training either objective on a dataset, checkpoints and the model directory.
+//!
 //! Batches are flat row-major `f32` slices: `n` rows of the sample dimension.
 
 pub mod ddpm;
 pub mod fm;
+pub mod train;
+pub mod trajectory;
+
+pub use train::{ModelError, TrainConfig, Trainer, WindowSet};
+pub use trajectory::{ModelConfig, Objective, TaskGuidance, TokenLayout, TrajectoryModel};
 
 use std::ops::Range;
 

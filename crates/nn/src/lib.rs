@@ -1,6 +1,10 @@
-//! Neural-network pieces written by hand for the CPU: the PPO experts' actor and critic, and
-//! the small denoisers the generative-model tests train.
+//! Neural-network pieces written by hand for the CPU: the PPO experts' actor and critic (an
+//! MLP), the trajectory model's Transformer, and Adam. Forward and backward passes run on
+//! SGEMM and are checked against finite differences.
 
+mod dense;
 pub mod mlp;
+pub mod transformer;
 
 pub use mlp::{Adam, Mlp, Tape, sgemm_gflops};
+pub use transformer::{TensorSlot, Transformer, TransformerConfig};

@@ -2,6 +2,7 @@
 //! `matrixmultiply`'s SGEMM, and Adam. Small and explicit, like CleanRL's networks: PPO needs
 //! nothing more, and on a CPU this is faster than a general tensor library.
 
+use crate::dense::{self, gemm};
 use rand::Rng;
 use rand_distr::{Distribution, Normal};
 
@@ -14,31 +15,6 @@ pub struct Linear {
     pub bias: Vec<f32>,
 }
 
-/// `y[n][o] = x[n][i] * w[o][i]^T + b[o]` and friends, row-major.
-fn gemm(m: usize, k: usize, n: usize, a: (&[f32], isize, isize), b: (&[f32], isize, isize), c: &mut [f32], beta: f32) {
-    debug_assert!(c.len() >= m * n);
-    // SAFETY: the strides describe sub-matrices inside the given slices (checked by callers'
-    // shapes); c is m x n row-major.
-    unsafe {
-        matrixmultiply::sgemm(
-            m,
-            k,
-            n,
-            1.0,
-            a.0.as_ptr(),
-            a.1,
-            a.2,
-            b.0.as_ptr(),
-            b.1,
-            b.2,
-            beta,
-            c.as_mut_ptr(),
-            n as isize,
-            1,
-        );
-    }
-}
-
 impl Linear {
     fn new(inputs: usize, outputs: usize, gain: f32, rng: &mut impl Rng) -> Self {
         // Scaled normal init (fan-in), the same spirit as orthogonal init with a gain.
@@ -49,13 +25,6 @@ impl Linear {
             weight: (0..inputs * outputs).map(|_| normal.sample(rng)).collect(),
             bias: vec![0.0; outputs],
         }
-    }
-
-    fn forward(&self, x: &[f32], n: usize, y: &mut Vec<f32>) {
-        y.clear();
-        y.extend((0..n).flat_map(|_| self.bias.iter().copied()));
-        let (i, o) = (self.inputs as isize, self.outputs);
-        gemm(n, self.inputs, o, (x, i, 1), (&self.weight, 1, i), y, 1.0);
     }
 }
 
@@ -110,8 +79,7 @@ impl Mlp {
         let mut tape = Tape { inputs: Vec::with_capacity(self.layers.len()), output: Vec::new(), n };
         let mut current = x.to_vec();
         for (l, layer) in self.layers.iter().enumerate() {
-            let mut y = Vec::new();
-            layer.forward(&current, n, &mut y);
+            let mut y = dense::forward(&current, n, &layer.weight, &layer.bias, layer.inputs);
             if l + 1 < self.layers.len() {
                 y.iter_mut().for_each(|v| *v = elu(*v));
             }
@@ -135,19 +103,12 @@ impl Mlp {
             let layer = &self.layers[l];
             let (i, o) = (layer.inputs, layer.outputs);
             offset -= layer.weight.len() + layer.bias.len();
-            let x = &tape.inputs[l];
             let (gw, gb) = grads[offset..offset + i * o + o].split_at_mut(i * o);
-            // dW += dY^T X ; db += column sums of dY.
-            gemm(o, n, i, (&grad, 1, o as isize), (x, i as isize, 1), gw, 1.0);
-            for row in grad.chunks_exact(o) {
-                gb.iter_mut().zip(row).for_each(|(b, g)| *b += g);
-            }
-            if l == 0 {
+            let x = &tape.inputs[l];
+            let Some(mut gx) = dense::backward(x, &grad, n, &layer.weight, i, (gw, gb), l > 0) else {
                 break;
-            }
-            // dX = dY W, then through the ELU that produced X (x > 0: 1, else elu(x) + 1).
-            let mut gx = vec![0.0; n * i];
-            gemm(n, o, i, (&grad, o as isize, 1), (&layer.weight, i as isize, 1), &mut gx, 0.0);
+            };
+            // Through the ELU that produced X (x > 0: 1, else elu(x) + 1).
             for (g, &y) in gx.iter_mut().zip(x) {
                 if y <= 0.0 {
                     *g *= y + 1.0;

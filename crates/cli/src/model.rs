@@ -1,0 +1,185 @@
+//! `flowmimic train` and `flowmimic bench model`: the trajectory model.
+
+use crate::progress::{CsvLog, Progress};
+use anyhow::{Context, Result, bail};
+use flowmimic_data::{Dataset, Stats};
+use flowmimic_model::train::{CHECKPOINT_FILE, MODEL_FILE};
+use flowmimic_model::{ModelConfig, TokenLayout, TrainConfig, Trainer, TrajectoryModel, WindowSet};
+use flowmimic_plot::{Chart, Series};
+use flowmimic_sim::{NUM_DOFS, STATE_DIM};
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// The token layout of this humanoid's states and actions for `config`'s window.
+pub fn layout(config: &ModelConfig) -> TokenLayout {
+    TokenLayout { state_dim: STATE_DIM, action_dim: NUM_DOFS, spec: config.spec() }
+}
+
+const LOG_HEADER: &str = "step,train_loss,validation_loss,lr,seconds,windows_per_second";
+
+/// Trains a model on `dataset` into `out`.
+pub fn train(
+    dataset: &Path,
+    objective: &str,
+    out: &Path,
+    steps: Option<usize>,
+    resume: bool,
+    model: ModelConfig,
+    mut cfg: TrainConfig,
+) -> Result<()> {
+    if let Some(s) = steps {
+        cfg.steps = s;
+    }
+    let objective = cfg.objective(objective)?;
+    if !resume && out.join(CHECKPOINT_FILE).exists() {
+        bail!("{} exists: pass --resume to continue it, or choose another --out", out.join(CHECKPOINT_FILE).display());
+    }
+    let dataset = Dataset::open(dataset)?;
+    let layout = layout(&model);
+    let stats = Stats::of_dataset(&dataset, layout.spec)?;
+    let started = Instant::now();
+    let data = WindowSet::from_dataset(&dataset, layout, &stats, cfg.validation_fraction)?;
+    eprintln!(
+        "{}: {} training and {} validation windows (history {}, horizon {}) in {:.1} s",
+        dataset.dir.display(),
+        data.train_len(),
+        data.validation_len(),
+        layout.spec.history,
+        layout.spec.horizon,
+        started.elapsed().as_secs_f64()
+    );
+    let fresh = Trainer::new(layout, model, objective, cfg.clone(), stats, data, dataset.shards_key());
+    let mut trainer = if resume {
+        let t = Trainer::resume(out, fresh)?;
+        eprintln!("resumed {} at step {}", out.join(CHECKPOINT_FILE).display(), t.step);
+        t
+    } else {
+        fresh
+    };
+    let net = &trainer.model.net.net;
+    eprintln!(
+        "{} Transformer: {} layers, {} heads, d {}, ff {}, {} tokens of {}: {} parameters ({:.1} MFLOP per sample)",
+        objective.name().to_uppercase(),
+        model.layers,
+        model.heads,
+        model.d_model,
+        model.d_ff,
+        net.config.tokens,
+        net.config.token_dim,
+        net.num_params(),
+        net.flops_per_sample() / 1e6
+    );
+    let config = serde_json::json!({
+        "objective": objective, "model": model, "train": cfg, "dataset": dataset.dir, "dataset_sha256": dataset.shards_key(),
+    });
+    flowmimic_io::write_atomic(&out.join("config.json"), serde_json::to_string_pretty(&config)?.as_bytes())?;
+    let mut log = CsvLog::open(out.join("log.csv"), LOG_HEADER, resume.then_some(trainer.step));
+    let progress = Progress::new(cfg.steps, trainer.step);
+    let (mut sum, mut count, mut since) = (0.0, 0, Instant::now());
+    let clock = Instant::now();
+    while trainer.step < cfg.steps {
+        sum += trainer.train_step().context("training stopped; the last checkpoint is intact")?;
+        count += 1;
+        let step = trainer.step;
+        let last = step == cfg.steps;
+        if step % cfg.log_every.max(1) == 0 || last {
+            let rate = (count * cfg.batch) as f64 / since.elapsed().as_secs_f64();
+            let train_loss = sum / count as f32;
+            let validation = trainer.validation_loss();
+            let val = validation.map_or(String::new(), |v| format!("{v:.5}"));
+            log.rows.push(format!(
+                "{step},{train_loss:.5},{val},{:.3e},{:.1},{rate:.0}",
+                trainer.lr(),
+                clock.elapsed().as_secs_f64()
+            ));
+            progress.update(
+                step,
+                &format!("loss {train_loss:.4}  validation {val:>7}  lr {:.1e}  {rate:.0} windows/s", trainer.lr()),
+            );
+            (sum, count, since) = (0.0, 0, Instant::now());
+        }
+        if step % cfg.checkpoint_every.max(1) == 0 || last {
+            trainer.save(out)?;
+            log.save()?;
+            plot_loss(out, &log)?;
+        }
+    }
+    progress.finish();
+    if trainer.step == cfg.steps && !out.join(MODEL_FILE).exists() {
+        trainer.save(out)?;
+    }
+    eprintln!("wrote {} (weights, stats, checkpoint, log.csv, loss.png)", out.display());
+    Ok(())
+}
+
+fn plot_loss(out: &Path, log: &CsvLog) -> Result<()> {
+    let chart = Chart::new("trajectory model loss", "optimiser steps", "mean squared error (normalised units)")
+        .series(Series::line("train", log.column(0, 1)))
+        .series(Series::line("validation", log.column(0, 2)));
+    chart.save(&out.join("loss"))?;
+    Ok(())
+}
+
+/// Default model directory of an objective.
+pub fn default_out(objective: &str) -> PathBuf {
+    PathBuf::from("runs/model").join(objective)
+}
+
+/// Sampling latency table: batch 1 and 64, NFE 1-20, both objectives, the given sizes.
+pub fn bench(sizes: &[(&str, ModelConfig)], repeats: usize) -> Result<()> {
+    let peak = flowmimic_nn::sgemm_gflops(512, 7);
+    println!("measured SGEMM peak (512^3, all threads): {peak:.1} GFLOP/s");
+    println!(
+        "{:<6} {:>9} {:<5} {:>5} {:>4} {:>11} {:>11} {:>9} {:>7}",
+        "size", "params", "obj", "batch", "nfe", "median ms", "ms/sample", "GFLOP", "peak"
+    );
+    for (name, config) in sizes {
+        let layout = layout(config);
+        for objective in ["fm", "ddpm"] {
+            let model = untrained(config, &layout, TrainConfig::default().objective(objective)?);
+            for batch in [1, 64] {
+                for nfe in [1, 2, 5, 10, 20] {
+                    let cond = vec![0.0; batch * layout.cond_len()];
+                    let mut rng = StdRng::seed_from_u64(0);
+                    let mut times: Vec<f64> = (0..repeats.max(1) + 1)
+                        .map(|_| {
+                            let t = Instant::now();
+                            std::hint::black_box(model.sample(&cond, batch, nfe, None, &mut rng));
+                            t.elapsed().as_secs_f64()
+                        })
+                        .skip(1)
+                        .collect();
+                    times.sort_by(f64::total_cmp);
+                    let median = times[times.len() / 2];
+                    let flops = model.sample_flops(batch, nfe);
+                    println!(
+                        "{name:<6} {:>9} {objective:<5} {batch:>5} {nfe:>4} {:>11.2} {:>11.3} {:>9.3} {:>6.1}%",
+                        model.net.net.num_params(),
+                        median * 1e3,
+                        median * 1e3 / batch as f64,
+                        flops / 1e9,
+                        100.0 * flops / median / 1e9 / peak
+                    );
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+/// A randomly initialised model with unit statistics (timing only).
+fn untrained(config: &ModelConfig, layout: &TokenLayout, objective: flowmimic_model::Objective) -> TrajectoryModel {
+    let spec = layout.spec;
+    let stats = Stats {
+        spec,
+        state_mean: vec![0.0; spec.states() * STATE_DIM],
+        state_std: vec![1.0; spec.states() * STATE_DIM],
+        action_mean: vec![0.0; spec.actions() * NUM_DOFS],
+        action_std: vec![1.0; spec.actions() * NUM_DOFS],
+        windows: 0,
+    };
+    let data = WindowSet { layout: *layout, train: vec![0.0; layout.window_len()], validation: Vec::new() };
+    Trainer::new(*layout, *config, objective, TrainConfig::default(), stats, data, String::new()).model
+}

@@ -1,0 +1,235 @@
+//! `flowmimic run`: the trained model drives the humanoid, optionally steered by a task.
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+use flowmimic_control::{ControlConfig, Hand, JoystickSegment, Rollout, StepReport, Task};
+use flowmimic_model::TrajectoryModel;
+use flowmimic_motion::{Clip, GaitParams};
+use flowmimic_sim::Humanoid;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum TaskKind {
+    /// Unguided walking.
+    Walk,
+    /// Follow --schedule (default: forward, backward, turn left, turn right, 3 s each).
+    Joystick,
+    /// Reach --target with --hand while walking at --schedule's first velocity.
+    Reach,
+    /// Walk to --goal.
+    Waypoint,
+    /// Walk to --goal while reaching --target with --hand.
+    Compose,
+}
+
+#[derive(Args)]
+pub struct RunArgs {
+    /// Model directory (`flowmimic train` writes it).
+    #[arg(long, default_value = "runs/model/fm")]
+    pub model: PathBuf,
+    #[arg(long, value_enum, default_value_t = TaskKind::Walk)]
+    pub task: TaskKind,
+    /// Joystick schedule: `seconds:vx,vy,yaw_rate` segments separated by `;` (character frame:
+    /// x forward, y left, m/s; yaw rate rad/s).
+    #[arg(long)]
+    pub schedule: Option<String>,
+    #[arg(long, value_enum, default_value_t = HandArg::Right)]
+    pub hand: HandArg,
+    /// Hand target in the world, `x,y,z` metres (the humanoid starts at the origin facing +x).
+    #[arg(long, default_value = "2.0,-0.4,1.3")]
+    pub target: String,
+    /// Pelvis goal in the world, `x,y` metres.
+    #[arg(long, default_value = "4.0,2.0")]
+    pub goal: String,
+    /// Network evaluations per control step.
+    #[arg(long, default_value_t = 5)]
+    pub nfe: usize,
+    /// Guidance scale w (v' = v - w grad G); 0 for none.
+    #[arg(long, default_value_t = 30.0)]
+    pub guidance_scale: f32,
+    /// Solver steps that apply guidance, `start:end` (default: all but the last quarter).
+    #[arg(long)]
+    pub guidance_interval: Option<String>,
+    #[arg(long, default_value_t = 10.0)]
+    pub seconds: f64,
+    /// Environments run at once (one batched model call per step).
+    #[arg(long, default_value_t = 1)]
+    pub envs: usize,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Pace the loop at 30 Hz of wall-clock time.
+    #[arg(long)]
+    pub paced: bool,
+    /// Start from this clip's frames (default: the generated straight walk).
+    #[arg(long)]
+    pub clip: Option<PathBuf>,
+    /// Rollout file; default runs/run/<task>.rollout.safetensors.
+    #[arg(short, long)]
+    pub out: Option<PathBuf>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum HandArg {
+    Left,
+    Right,
+}
+
+/// Comma-separated numbers, exactly `n` of them, every one finite.
+fn numbers(text: &str, n: usize, what: &str) -> Result<Vec<f64>> {
+    let values: Vec<f64> = text
+        .split(',')
+        .map(|v| v.trim().parse::<f64>().with_context(|| format!("{what}: '{v}' is not a number")))
+        .collect::<Result<_>>()?;
+    if values.len() != n {
+        bail!("{what}: expected {n} numbers, got '{text}'");
+    }
+    if let Some(v) = values.iter().find(|v| !v.is_finite()) {
+        bail!("{what}: {v} is not finite");
+    }
+    Ok(values)
+}
+
+fn schedule(text: &str) -> Result<Vec<JoystickSegment>> {
+    text.split(';')
+        .map(|seg| {
+            let (secs, v) =
+                seg.split_once(':').with_context(|| format!("schedule segment '{seg}': use seconds:vx,vy,yaw_rate"))?;
+            let seconds = numbers(secs, 1, "schedule duration")?[0];
+            let v = numbers(v, 3, "schedule velocity")?;
+            Ok(JoystickSegment { seconds, vx: v[0], vy: v[1], yaw_rate: v[2] })
+        })
+        .collect()
+}
+
+impl RunArgs {
+    pub fn task(&self) -> Result<Task> {
+        let hand = match self.hand {
+            HandArg::Left => Hand::Left,
+            HandArg::Right => Hand::Right,
+        };
+        let target = || -> Result<[f64; 3]> { Ok(numbers(&self.target, 3, "--target")?.try_into().expect("3")) };
+        let goal = || -> Result<[f64; 2]> { Ok(numbers(&self.goal, 2, "--goal")?.try_into().expect("2")) };
+        let joystick = match &self.schedule {
+            Some(s) => schedule(s)?,
+            None => Task::joystick_eval().joystick,
+        };
+        let walk_on = vec![JoystickSegment { seconds: self.seconds, ..joystick[0] }];
+        let task = match self.task {
+            TaskKind::Walk => Task::walk(),
+            TaskKind::Joystick => Task { joystick, ..Task::walk() },
+            TaskKind::Reach => Task { joystick: walk_on, reach: Some((hand, target()?)), ..Task::walk() },
+            TaskKind::Waypoint => Task { waypoint: Some(goal()?), ..Task::walk() },
+            TaskKind::Compose => Task { waypoint: Some(goal()?), reach: Some((hand, target()?)), ..Task::walk() },
+        };
+        task.validate()?;
+        Ok(task)
+    }
+
+    pub fn control(&self) -> Result<ControlConfig> {
+        let guidance_steps = match &self.guidance_interval {
+            None => None,
+            Some(text) => {
+                let (a, b) = text.split_once(':').context("--guidance-interval: use start:end")?;
+                let (a, b): (usize, usize) = (a.parse()?, b.parse()?);
+                if a >= b || b > self.nfe {
+                    bail!("--guidance-interval {text}: need start < end <= nfe ({})", self.nfe);
+                }
+                Some((a, b))
+            }
+        };
+        Ok(ControlConfig {
+            nfe: self.nfe,
+            guidance_scale: self.guidance_scale,
+            guidance_steps,
+            seconds: self.seconds,
+            paced: self.paced,
+            seed: self.seed,
+            kick_every: 0.0,
+            kick_max: 0.0,
+        })
+    }
+}
+
+/// A model directory, refused when its states and actions are not this humanoid's.
+pub fn load_model(dir: &Path) -> Result<TrajectoryModel> {
+    let model = TrajectoryModel::load(dir).with_context(|| format!("loading model {}", dir.display()))?;
+    let ours = crate::model::layout(&model.config);
+    model.check_layout(&ours, "this humanoid").with_context(|| format!("model {}", dir.display()))?;
+    Ok(model)
+}
+
+/// The clip a run starts from: a file, or the generated 10 s straight walk.
+pub fn start_clip(humanoid: &Arc<Humanoid>, file: Option<&Path>) -> Result<Clip> {
+    Ok(match file {
+        Some(f) => Clip::load(humanoid, f)?,
+        None => {
+            flowmimic_motion::generate(humanoid, "walk_straight", &GaitParams { duration: 10.0, ..Default::default() })?
+                .0
+        }
+    })
+}
+
+pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
+    let model =
+        TrajectoryModel::load(&args.model).with_context(|| format!("loading model {}", args.model.display()))?;
+    let task = args.task()?;
+    let control = args.control()?;
+    let clip = start_clip(humanoid, args.clip.as_deref())?;
+    let name = format!("{:?}", args.task).to_lowercase();
+    let out = args.out.clone().unwrap_or_else(|| PathBuf::from("runs/run").join(format!("{name}.rollout.safetensors")));
+    eprintln!(
+        "{} model (H {}), NFE {}, guidance {} on steps {:?}, task {name}, {} env(s), {} s",
+        model.objective.name().to_uppercase(),
+        model.layout().spec.horizon,
+        control.nfe,
+        control.guidance_scale,
+        control.guidance_steps(),
+        args.envs,
+        control.seconds
+    );
+    let status = |r: &StepReport| {
+        if r.step.is_multiple_of(30) {
+            eprintln!(
+                "t {:>5.1} s  alive {:>3}  model {:>6.1} ms  physics {:>5.1} ms  ({:.0} Hz possible)",
+                r.step as f64 / flowmimic_sim::CONTROL_HZ,
+                r.alive,
+                r.model_ms,
+                r.physics_ms,
+                1e3 / (r.model_ms + r.physics_ms)
+            );
+        }
+    };
+    let rollout = flowmimic_control::run(
+        &model,
+        humanoid,
+        &clip,
+        vec![task; args.envs.max(1)],
+        &control,
+        &args.model.display().to_string(),
+        status,
+    )?;
+    rollout.save(&out)?;
+    summarise(&rollout);
+    eprintln!("wrote {}", out.display());
+    Ok(())
+}
+
+/// Falls and timing medians of a rollout.
+fn summarise(r: &Rollout) {
+    let fell = r.survived.iter().filter(|&&s| s < r.steps).count();
+    let median = |v: &[f32]| {
+        let mut v: Vec<f32> = v.iter().copied().filter(|x| *x > 0.0).collect();
+        v.sort_by(f32::total_cmp);
+        v.get(v.len() / 2).copied().unwrap_or(0.0)
+    };
+    let (m, p) = (median(&r.model_ms), median(&r.physics_ms));
+    println!(
+        "{} of {} environments fell; per control step (median, whole batch): model {m:.1} ms, physics {p:.1} ms, \
+         {:.0} Hz achievable ({})",
+        fell,
+        r.envs,
+        1e3 / (m + p),
+        if f64::from(1e3 / (m + p)) >= flowmimic_sim::CONTROL_HZ { "real time" } else { "slower than real time" }
+    );
+}

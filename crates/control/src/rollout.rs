@@ -1,0 +1,146 @@
+//! The record of a controlled run, `flowmimic-rollout/1` in safetensors (E environments, T
+//! control steps, readable with `safetensors.numpy.load_file`):
+//!
+//! | tensor    | shape            | meaning                                                     |
+//! |-----------|------------------|-------------------------------------------------------------|
+//! | `qpos`    | E x (T+1) x 76   | MuJoCo positions (root xyz, quaternion wxyz, 69 hinges)     |
+//! | `state`   | E x (T+1) x 165  | the model's state features (DESIGN.md 2)                    |
+//! | `body_pos`| E x (T+1) x 24 x 3 | world positions of the 24 bodies (pelvis first)           |
+//! | `action`  | E x T x 69       | executed normalised actions                                 |
+//! | `command` | E x T x 8        | joystick (vx, vy, yaw rate), hand target xyz, waypoint xy   |
+//! | `steps`   | E                | control steps survived (T unless the humanoid fell)         |
+//! | `model_ms`, `physics_ms` | T | wall time per control step for the whole batch            |
+//!
+//! After a fall an environment's rows repeat its last state. Metadata `info` is JSON of
+//! [`RolloutInfo`].
+
+use flowmimic_io::tensors::{self, TensorError, TensorFile};
+use flowmimic_sim::{NUM_BODIES, NUM_DOFS, STATE_DIM};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::path::Path;
+
+use crate::task::{COMMAND_DIM, Task};
+
+const FORMAT: &str = "flowmimic-rollout/1";
+
+/// What produced a rollout.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RolloutInfo {
+    pub model: String,
+    pub objective: String,
+    pub nfe: usize,
+    pub horizon: usize,
+    pub guidance_scale: f32,
+    pub guidance_steps: (usize, usize),
+    pub tasks: Vec<Task>,
+    pub seed: u64,
+    pub start: String,
+    /// Kicks: every this many seconds (0: none), up to this speed (m/s).
+    pub kick_every: f64,
+    pub kick_max: f64,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct Rollout {
+    pub info: RolloutInfo,
+    pub envs: usize,
+    pub steps: usize,
+    pub nq: usize,
+    pub qpos: Vec<f32>,
+    pub state: Vec<f32>,
+    pub body_pos: Vec<f32>,
+    pub action: Vec<f32>,
+    pub command: Vec<f32>,
+    pub survived: Vec<usize>,
+    pub model_ms: Vec<f32>,
+    pub physics_ms: Vec<f32>,
+}
+
+impl Rollout {
+    /// State `k` (0..=T) of environment `e`.
+    pub fn state(&self, e: usize, k: usize) -> &[f32] {
+        let at = (e * (self.steps + 1) + k) * STATE_DIM;
+        &self.state[at..at + STATE_DIM]
+    }
+
+    /// World position of body `b` at step `k` of environment `e`.
+    pub fn body(&self, e: usize, k: usize, b: usize) -> [f64; 3] {
+        let at = ((e * (self.steps + 1) + k) * NUM_BODIES + b) * 3;
+        [0, 1, 2].map(|i| f64::from(self.body_pos[at + i]))
+    }
+
+    pub fn qpos(&self, e: usize, k: usize) -> &[f32] {
+        let at = (e * (self.steps + 1) + k) * self.nq;
+        &self.qpos[at..at + self.nq]
+    }
+
+    pub fn command(&self, e: usize, k: usize) -> &[f32] {
+        let at = (e * self.steps + k) * COMMAND_DIM;
+        &self.command[at..at + COMMAND_DIM]
+    }
+
+    /// Copies environment `e`'s row `k` to row `k + 1` (a fallen environment stays put).
+    pub fn repeat_row(&mut self, e: usize, k: usize) {
+        let (from, to) = (e * (self.steps + 1) + k, e * (self.steps + 1) + k + 1);
+        self.state.copy_within(from * STATE_DIM..(from + 1) * STATE_DIM, to * STATE_DIM);
+        self.qpos.copy_within(from * self.nq..(from + 1) * self.nq, to * self.nq);
+        let b = NUM_BODIES * 3;
+        self.body_pos.copy_within(from * b..(from + 1) * b, to * b);
+    }
+
+    pub fn save(&self, path: &Path) -> Result<(), TensorError> {
+        let (e, t) = (self.envs, self.steps);
+        let survived: Vec<f32> = self.survived.iter().map(|&s| s as f32).collect();
+        let meta = HashMap::from([
+            ("format".to_string(), FORMAT.to_string()),
+            ("info".to_string(), serde_json::to_string(&self.info).expect("serialisable")),
+        ]);
+        tensors::save(
+            path,
+            &[
+                ("qpos", vec![e, t + 1, self.nq], &self.qpos),
+                ("state", vec![e, t + 1, STATE_DIM], &self.state),
+                ("body_pos", vec![e, t + 1, NUM_BODIES, 3], &self.body_pos),
+                ("action", vec![e, t, NUM_DOFS], &self.action),
+                ("command", vec![e, t, COMMAND_DIM], &self.command),
+                ("steps", vec![e], &survived),
+                ("model_ms", vec![t], &self.model_ms),
+                ("physics_ms", vec![t], &self.physics_ms),
+            ],
+            meta,
+        )
+    }
+
+    pub fn load(path: &Path) -> Result<Self, TensorError> {
+        let file = TensorFile::open(path)?;
+        if file.meta("format")? != FORMAT {
+            return Err(file.error(format!("not a {FORMAT} file")));
+        }
+        let info: RolloutInfo =
+            serde_json::from_str(file.meta("info")?).map_err(|e| file.error(format!("metadata 'info': {e}")))?;
+        let envs = info.tasks.len();
+        let shape = file.shape("qpos")?;
+        let [e, t1, nq] = shape[..] else {
+            return Err(file.error(format!("tensor 'qpos' has shape {shape:?}, expected E x (T+1) x nq")));
+        };
+        if e != envs || t1 == 0 {
+            return Err(file.error(format!("tensor 'qpos' has shape {shape:?} for {envs} tasks")));
+        }
+        let t = t1 - 1;
+        Ok(Self {
+            envs,
+            steps: t,
+            nq,
+            qpos: file.f32("qpos", &[envs, t + 1, nq])?,
+            state: file.f32("state", &[envs, t + 1, STATE_DIM])?,
+            body_pos: file.f32("body_pos", &[envs, t + 1, NUM_BODIES, 3])?,
+            action: file.f32("action", &[envs, t, NUM_DOFS])?,
+            command: file.f32("command", &[envs, t, COMMAND_DIM])?,
+            survived: file.f32("steps", &[envs])?.iter().map(|&s| s as usize).collect(),
+            model_ms: file.f32("model_ms", &[t])?,
+            physics_ms: file.f32("physics_ms", &[t])?,
+            info,
+        })
+    }
+}

@@ -1,0 +1,144 @@
+//! What the humanoid is asked to do, in the world and over time, and the cost that asks it at
+//! each control step (re-expressed in that step's character frame).
+
+use crate::costs::{Joystick, Reach, Sum, TurnRate, Waypoint};
+use crate::{ControlError, Layout};
+use flowmimic_geom::CharFrame;
+use flowmimic_sim::skeleton::body;
+use serde::{Deserialize, Serialize};
+
+/// One piece of a joystick schedule: hold (vx forward, vy left in the character frame, m/s;
+/// yaw rate rad/s) for `seconds`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct JoystickSegment {
+    pub seconds: f64,
+    pub vx: f64,
+    pub vy: f64,
+    pub yaw_rate: f64,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Hand {
+    Left,
+    Right,
+}
+
+impl Hand {
+    pub fn body(self) -> usize {
+        match self {
+            Hand::Left => body::L_HAND,
+            Hand::Right => body::R_HAND,
+        }
+    }
+}
+
+/// A task: any of a joystick schedule, a hand target and a waypoint, each weighted; empty is
+/// unguided walking.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Task {
+    /// Played in order; the last segment holds after the schedule ends.
+    pub joystick: Vec<JoystickSegment>,
+    /// A hand and its world-frame target (x, y, height).
+    pub reach: Option<(Hand, [f64; 3])>,
+    /// A world-frame goal for the pelvis (x, y).
+    pub waypoint: Option<[f64; 2]>,
+    /// Relative weights of the joystick, yaw-rate, reach and waypoint costs.
+    pub weights: [f32; 4],
+}
+
+/// Width of the per-step command record: joystick (vx, vy, yaw rate), hand target (x, y, z),
+/// waypoint (x, y); zeros for what the task does not ask.
+pub const COMMAND_DIM: usize = 8;
+
+impl Task {
+    pub fn walk() -> Self {
+        Self { weights: [1.0; 4], ..Default::default() }
+    }
+
+    /// The paper's joystick evaluation: forward, backward, turn left, turn right, 3 s each.
+    pub fn joystick_eval() -> Self {
+        let seg = |vx, yaw_rate| JoystickSegment { seconds: 3.0, vx, vy: 0.0, yaw_rate };
+        Self { joystick: vec![seg(1.0, 0.0), seg(-0.5, 0.0), seg(0.8, 0.6), seg(0.8, -0.6)], ..Self::walk() }
+    }
+
+    /// Checks every number of the task, naming the first bad one.
+    pub fn validate(&self) -> Result<(), ControlError> {
+        let layout = Layout { horizon: 1 };
+        for s in &self.joystick {
+            if !(s.seconds.is_finite() && s.seconds > 0.0) {
+                return Err(ControlError::BadCommand { what: "joystick segment duration (s)", value: s.seconds });
+            }
+            Joystick::new(layout, s.vx, s.vy)?;
+            TurnRate::new(layout, s.yaw_rate)?;
+        }
+        if let Some((_, target)) = self.reach {
+            check_world(&target)?;
+            if !(0.0..=2.5).contains(&target[2]) {
+                return Err(ControlError::BadCommand { what: "hand target height (m, 0-2.5)", value: target[2] });
+            }
+        }
+        if let Some(goal) = self.waypoint {
+            check_world(&goal)?;
+        }
+        match self.weights.iter().find(|w| !w.is_finite() || **w < 0.0) {
+            Some(w) => Err(ControlError::BadCommand { what: "task weight", value: f64::from(*w) }),
+            None => Ok(()),
+        }
+    }
+
+    /// The joystick segment in force at `time`.
+    pub fn joystick_at(&self, time: f64) -> Option<&JoystickSegment> {
+        let mut end = 0.0;
+        for s in &self.joystick {
+            end += s.seconds;
+            if time < end {
+                return Some(s);
+            }
+        }
+        self.joystick.last()
+    }
+
+    /// The command record at `time` (see [`COMMAND_DIM`]).
+    pub fn command(&self, time: f64) -> [f32; COMMAND_DIM] {
+        let mut c = [0.0; COMMAND_DIM];
+        if let Some(s) = self.joystick_at(time) {
+            c[..3].copy_from_slice(&[s.vx as f32, s.vy as f32, s.yaw_rate as f32]);
+        }
+        if let Some((_, t)) = self.reach {
+            c[3..6].copy_from_slice(&t.map(|x| x as f32));
+        }
+        if let Some(g) = self.waypoint {
+            c[6..8].copy_from_slice(&g.map(|x| x as f32));
+        }
+        c
+    }
+
+    /// The cost at `time` for a trajectory predicted from the character frame `frame`;
+    /// `None` when the task asks nothing.
+    pub fn cost(&self, layout: Layout, time: f64, frame: &CharFrame) -> Result<Option<Sum>, ControlError> {
+        let mut sum = Sum::default();
+        let [wj, wt, wr, ww] = self.weights;
+        if let Some(s) = self.joystick_at(time) {
+            sum = sum.with(wj, Joystick::new(layout, s.vx, s.vy)?);
+            if s.yaw_rate != 0.0 {
+                sum = sum.with(wt, TurnRate::new(layout, s.yaw_rate)?);
+            }
+        }
+        if let Some((hand, target)) = self.reach {
+            sum = sum.with(wr, Reach::world(layout, hand.body(), target, frame)?);
+        }
+        if let Some(goal) = self.waypoint {
+            sum = sum.with(ww, Waypoint::world(layout, goal, frame)?);
+        }
+        Ok((!sum.terms.is_empty()).then_some(sum))
+    }
+}
+
+/// World coordinates must be finite and within 10 km.
+fn check_world(values: &[f64]) -> Result<(), ControlError> {
+    match values.iter().find(|v| !v.is_finite() || v.abs() > 1e4) {
+        Some(v) => Err(ControlError::BadCommand { what: "world coordinate (m)", value: *v }),
+        None => Ok(()),
+    }
+}

@@ -1,0 +1,250 @@
+//! The paper's evaluation protocols, each run through the same controller as `flowmimic run`
+//! with all trials batched into one set of environments.
+
+use crate::{composition_success, reach_errors, velocity_rmse};
+use flowmimic_control::{ControlConfig, ControlError, Hand, Rollout, StepReport, Task, controller};
+use flowmimic_geom::{DVec3, heading, quat_from_wxyz, wrap_angle, yaw_quat};
+use flowmimic_model::TrajectoryModel;
+use flowmimic_motion::Clip;
+use flowmimic_sim::skeleton::body;
+use flowmimic_sim::state::offset;
+use flowmimic_sim::{CONTROL_HZ, Humanoid};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
+use std::sync::Arc;
+
+/// What every protocol needs: the model, the humanoid and the clip the trials start from.
+pub struct Bench<'a> {
+    pub model: &'a TrajectoryModel,
+    pub humanoid: &'a Arc<Humanoid>,
+    pub clip: &'a Clip,
+    pub name: &'a str,
+}
+
+/// Sampler settings of one evaluated point.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Point {
+    pub nfe: usize,
+    pub scale: f32,
+    pub seed: u64,
+}
+
+impl Bench<'_> {
+    fn run(
+        &self,
+        tasks: Vec<Task>,
+        point: Point,
+        seconds: f64,
+        kicks: bool,
+        on_step: impl FnMut(&StepReport),
+    ) -> Result<Rollout, ControlError> {
+        let config = ControlConfig {
+            nfe: point.nfe,
+            guidance_scale: point.scale,
+            guidance_steps: None,
+            seconds,
+            paced: false,
+            seed: point.seed,
+            kick_every: if kicks { 1.0 } else { 0.0 },
+            kick_max: if kicks { 0.5 } else { 0.0 },
+        };
+        controller::run(self.model, self.humanoid, self.clip, tasks, &config, self.name, on_step)
+    }
+
+    /// The world pose (x, y, heading) environment `e` starts from.
+    fn start_pose(&self, e: usize) -> (DVec3, f64) {
+        let n = self.model.layout().spec.history;
+        let q = &self.clip.qpos[controller::start_frame(self.clip.len(), n, e)];
+        (DVec3::new(q[0], q[1], 0.0), heading(quat_from_wxyz([q[3], q[4], q[5], q[6]])))
+    }
+
+    /// A point given in environment `e`'s starting character frame, in the world.
+    fn start_to_world(&self, e: usize, local: DVec3) -> DVec3 {
+        let (origin, yaw) = self.start_pose(e);
+        origin + yaw_quat(yaw) * local
+    }
+}
+
+/// Survival (paper Fig. 2): unguided walking with a random planar kick of 0-0.5 m/s every
+/// second; control steps until the head falls below 0.2 m, capped at `cap_seconds`.
+pub fn survival(
+    bench: &Bench,
+    point: Point,
+    trials: usize,
+    cap_seconds: f64,
+    on_step: impl FnMut(&StepReport),
+) -> Result<Vec<usize>, ControlError> {
+    let rollout = bench.run(vec![Task::walk(); trials], point, cap_seconds, true, on_step)?;
+    Ok(rollout.survived)
+}
+
+/// One joystick trial: RMSE of planar velocity (m/s) and yaw rate (rad/s) over the steps
+/// before any fall.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct JoystickTrial {
+    pub velocity_rmse: f64,
+    pub yaw_rate_rmse: f64,
+    pub fell: bool,
+}
+
+/// Joystick (paper Fig. 3): forward, backward, turn left, turn right, 3 s each.
+pub fn joystick(
+    bench: &Bench,
+    point: Point,
+    trials: usize,
+    on_step: impl FnMut(&StepReport),
+) -> Result<Vec<JoystickTrial>, ControlError> {
+    let task = Task::joystick_eval();
+    let seconds: f64 = task.joystick.iter().map(|s| s.seconds).sum();
+    let r = bench.run(vec![task; trials], point, seconds, false, on_step)?;
+    Ok((0..trials).map(|e| joystick_trial(&r, e)).collect())
+}
+
+/// Commanded against achieved velocities of one environment of a rollout.
+pub fn joystick_trial(r: &Rollout, e: usize) -> JoystickTrial {
+    let steps = r.survived[e];
+    let (mut cmd, mut got, mut yaw_err) = (Vec::new(), Vec::new(), 0.0);
+    for k in 0..steps {
+        let c = r.command(e, k);
+        let s = r.state(e, k + 1);
+        cmd.push([f64::from(c[0]), f64::from(c[1])]);
+        got.push([f64::from(s[offset::ROOT_VEL]), f64::from(s[offset::ROOT_VEL + 1])]);
+        let yaw = |k: usize| {
+            let q = r.qpos(e, k);
+            heading(quat_from_wxyz([q[3], q[4], q[5], q[6]].map(f64::from)))
+        };
+        let rate = wrap_angle(yaw(k + 1) - yaw(k)) * CONTROL_HZ;
+        yaw_err += (rate - f64::from(c[2])).powi(2);
+    }
+    JoystickTrial {
+        velocity_rmse: velocity_rmse(&cmd, &got),
+        yaw_rate_rmse: (yaw_err / steps.max(1) as f64).sqrt(),
+        fell: steps < r.steps,
+    }
+}
+
+/// One reach trial: hand-to-target distances over the trial (m).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ReachTrial {
+    pub mean: f64,
+    pub rms: f64,
+    pub min: f64,
+    pub fell: bool,
+}
+
+/// Reach (paper Fig. 4): right-hand targets drawn 1.5-3 m ahead, up to 0.5 m to either side,
+/// 0.9-1.5 m high, of each trial's start; guided reaching while the model walks, 4 s.
+pub fn reach(
+    bench: &Bench,
+    point: Point,
+    trials: usize,
+    on_step: impl FnMut(&StepReport),
+) -> Result<Vec<ReachTrial>, ControlError> {
+    let mut rng = StdRng::seed_from_u64(point.seed ^ 0x5EAC);
+    let tasks: Vec<Task> = (0..trials)
+        .map(|e| {
+            let local = DVec3::new(rng.random_range(1.5..3.0), rng.random_range(-0.5..0.5), rng.random_range(0.9..1.5));
+            let t = bench.start_to_world(e, local);
+            Task { reach: Some((Hand::Right, [t.x, t.y, local.z])), ..Task::walk() }
+        })
+        .collect();
+    let r = bench.run(tasks, point, 4.0, false, on_step)?;
+    Ok((0..trials)
+        .map(|e| {
+            let target = r.info.tasks[e].reach.expect("reach task").1;
+            let hands: Vec<[f64; 3]> = (1..=r.survived[e]).map(|k| r.body(e, k, body::R_HAND)).collect();
+            let (mean, rms) = reach_errors(&hands, &vec![target; hands.len()]);
+            let min = hands.iter().map(|h| distance(h, &target)).fold(f64::INFINITY, f64::min);
+            ReachTrial { mean, rms, min, fell: r.survived[e] < r.steps }
+        })
+        .collect())
+}
+
+fn distance(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>().sqrt()
+}
+
+/// One composition trial: closest approach to the waypoint and the hand target, and success.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ComposeTrial {
+    pub pelvis_min: f64,
+    pub hand_min: f64,
+    pub success: bool,
+    pub fell: bool,
+}
+
+/// Composition: walk to a waypoint 3-4 m ahead (up to 1.5 m to either side) and touch a
+/// target 0.4 m to its right at 1.2 m with the right hand, within 10 s. Success when, at some
+/// step, the pelvis is within 0.5 m of the waypoint and the hand within 0.15 m of the target.
+pub fn compose(
+    bench: &Bench,
+    point: Point,
+    trials: usize,
+    on_step: impl FnMut(&StepReport),
+) -> Result<Vec<ComposeTrial>, ControlError> {
+    let mut rng = StdRng::seed_from_u64(point.seed ^ 0xC0);
+    let tasks: Vec<Task> = (0..trials)
+        .map(|e| {
+            let (x, y) = (rng.random_range(3.0..4.0), rng.random_range(-1.5..1.5));
+            let goal = bench.start_to_world(e, DVec3::new(x, y, 0.0));
+            let hand = bench.start_to_world(e, DVec3::new(x, y - 0.4, 1.2));
+            Task { waypoint: Some([goal.x, goal.y]), reach: Some((Hand::Right, [hand.x, hand.y, 1.2])), ..Task::walk() }
+        })
+        .collect();
+    let r = bench.run(tasks, point, 10.0, false, on_step)?;
+    Ok((0..trials)
+        .map(|e| {
+            let task = &r.info.tasks[e];
+            let (goal, target) = (task.waypoint.expect("waypoint"), task.reach.expect("reach").1);
+            let (mut pelvis_min, mut hand_min, mut success) = (f64::INFINITY, f64::INFINITY, false);
+            for k in 1..=r.survived[e] {
+                let p = r.body(e, k, body::PELVIS);
+                let d_pelvis = (p[0] - goal[0]).hypot(p[1] - goal[1]);
+                let d_hand = distance(&r.body(e, k, body::R_HAND), &target);
+                pelvis_min = pelvis_min.min(d_pelvis);
+                hand_min = hand_min.min(d_hand);
+                success |= composition_success(d_pelvis, d_hand);
+            }
+            ComposeTrial { pelvis_min, hand_min, success, fell: r.survived[e] < r.steps }
+        })
+        .collect())
+}
+
+/// Motion-quality features of one state (documented in the README): root height, root
+/// velocity (3, character frame), and the positions relative to the root of the head, both
+/// hands and both feet (15): 19 numbers that describe posture and gait.
+pub fn quality_features(state: &[f32]) -> Vec<f64> {
+    let mut f = vec![f64::from(state[offset::ROOT_POS + 2])];
+    f.extend((0..3).map(|i| f64::from(state[offset::ROOT_VEL + i])));
+    for b in [body::HEAD, body::L_HAND, body::R_HAND, body::L_ANKLE, body::R_ANKLE] {
+        f.extend((0..3).map(|i| f64::from(state[offset::BODY_POS + 3 * b + i])));
+    }
+    f
+}
+
+/// Features of every state of unguided walking before any fall (`trials` x `seconds`).
+pub fn generated_features(
+    bench: &Bench,
+    point: Point,
+    trials: usize,
+    seconds: f64,
+    on_step: impl FnMut(&StepReport),
+) -> Result<Vec<Vec<f64>>, ControlError> {
+    let r = bench.run(vec![Task::walk(); trials], point, seconds, false, on_step)?;
+    Ok((0..trials)
+        .flat_map(|e| (1..=r.survived[e]).map(move |k| (e, k)))
+        .map(|(e, k)| quality_features(r.state(e, k)))
+        .collect())
+}
+
+/// Median model and physics milliseconds per control step, one environment walking unguided.
+pub fn latency(bench: &Bench, point: Point, seconds: f64) -> Result<(f64, f64), ControlError> {
+    let r = bench.run(vec![Task::walk()], point, seconds, false, |_| {})?;
+    let median = |v: &[f32]| {
+        let mut v: Vec<f64> = v.iter().map(|&x| f64::from(x)).filter(|x| *x > 0.0).collect();
+        v.sort_by(f64::total_cmp);
+        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+    };
+    Ok((median(&r.model_ms), median(&r.physics_ms)))
+}

@@ -1,0 +1,73 @@
+//! Protocol metrics on hand-made rollouts, where the answer is known.
+
+use flowmimic_control::{Rollout, RolloutInfo, Task};
+use flowmimic_eval::protocols::joystick_trial;
+use flowmimic_sim::state::offset;
+use flowmimic_sim::{NUM_BODIES, NUM_DOFS, STATE_DIM};
+
+/// One environment, `steps` steps, commanded 1 m/s forward and turning at `yaw_rate`, achieving
+/// 0.5 m/s forward and a heading that advances by `turn` radians per step; falls at `fall`.
+fn rollout(steps: usize, yaw_rate: f64, turn: f64, fall: usize) -> Rollout {
+    let nq = 76;
+    let mut task = Task::joystick_eval();
+    task.joystick = vec![flowmimic_control::JoystickSegment { seconds: 100.0, vx: 1.0, vy: 0.0, yaw_rate }];
+    let mut r = Rollout {
+        info: RolloutInfo {
+            model: "hand-made".into(),
+            objective: "fm".into(),
+            nfe: 1,
+            horizon: 1,
+            guidance_scale: 0.0,
+            guidance_steps: (0, 1),
+            tasks: vec![task.clone()],
+            seed: 0,
+            start: "test".into(),
+            kick_every: 0.0,
+            kick_max: 0.0,
+        },
+        envs: 1,
+        steps,
+        nq,
+        qpos: vec![0.0; (steps + 1) * nq],
+        state: vec![0.0; (steps + 1) * STATE_DIM],
+        body_pos: vec![0.0; (steps + 1) * NUM_BODIES * 3],
+        action: vec![0.0; steps * NUM_DOFS],
+        command: Vec::new(),
+        survived: vec![fall],
+        model_ms: vec![1.0; steps],
+        physics_ms: vec![1.0; steps],
+    };
+    for k in 0..=steps {
+        let yaw = turn * k as f64;
+        r.qpos[k * nq + 3] = (yaw / 2.0).cos() as f32;
+        r.qpos[k * nq + 6] = (yaw / 2.0).sin() as f32;
+        r.state[k * STATE_DIM + offset::ROOT_VEL] = 0.5;
+    }
+    r.command = (0..steps).flat_map(|k| task.command(k as f64 / 30.0)).collect();
+    r
+}
+
+#[test]
+fn a_known_trace_gives_known_errors() {
+    let t = joystick_trial(&rollout(30, 0.0, 0.0, 30), 0);
+    assert!((t.velocity_rmse - 0.5).abs() < 1e-9 && t.yaw_rate_rmse.abs() < 1e-9 && !t.fell, "{t:?}");
+    // Turning at 0.01 rad per step is 0.3 rad/s against a commanded 0.6 rad/s.
+    let t = joystick_trial(&rollout(30, 0.6, 0.01, 30), 0);
+    assert!((t.yaw_rate_rmse - 0.3).abs() < 1e-4, "{t:?}");
+    // A fall at step 10 counts only the steps before it and is reported.
+    let t = joystick_trial(&rollout(30, 0.0, 0.0, 10), 0);
+    assert!(t.fell && (t.velocity_rmse - 0.5).abs() < 1e-9, "{t:?}");
+}
+
+#[test]
+fn rollouts_round_trip_and_bad_files_are_named() {
+    let dir = std::env::temp_dir().join(format!("flowmimic-rollout-{}", std::process::id()));
+    let path = dir.join("r.rollout.safetensors");
+    let r = rollout(5, 0.0, 0.01, 5);
+    r.save(&path).unwrap();
+    assert_eq!(Rollout::load(&path).unwrap(), r);
+    std::fs::write(&path, b"not a rollout").unwrap();
+    let err = Rollout::load(&path).unwrap_err().to_string();
+    assert!(err.contains("r.rollout.safetensors"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -1,0 +1,405 @@
+//! Training the trajectory model on a dataset's windows, and the model directory.
+//!
+//! A model directory holds:
+//! - `model.safetensors`: the Transformer's named tensors; metadata `format` =
+//!   `flowmimic-model/1` and `model` = JSON of the [`ModelConfig`], [`Objective`], token layout,
+//!   training step and the dataset's shard checksums;
+//! - `stats.safetensors`: the dataset's window statistics the model normalises with;
+//! - `checkpoint.safetensors`: parameters and Adam's moments for `--resume`;
+//! - `log.csv`, `config.json` and loss plots (written by the CLI).
+//!
+//! Both objectives share everything here (network, optimiser, data, batches, budget); only the
+//! training batch's noise and target differ.
+
+use crate::trajectory::{Normaliser, Objective, TokenLayout, TrajectoryModel, TrajectoryNet};
+use crate::{ModelConfig, TrainingBatch, ddpm, fm};
+use flowmimic_data::{DataError, Dataset, Stats, window, window_starts};
+use flowmimic_io::tensors::{self, TensorError, TensorFile};
+use flowmimic_nn::{Adam, Transformer};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::path::Path;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    #[error(transparent)]
+    Tensors(#[from] TensorError),
+    #[error(transparent)]
+    Data(#[from] DataError),
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// Optimisation settings (a preset's `[train]` table).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrainConfig {
+    pub steps: usize,
+    pub batch: usize,
+    /// Adam's learning rate after warm-up (constant, as in the paper).
+    pub lr: f32,
+    /// Steps of linear warm-up.
+    pub warmup: usize,
+    /// Global gradient-norm clip.
+    pub grad_clip: f32,
+    /// Flow Matching's distribution of path times.
+    pub fm_time: fm::TimeDistribution,
+    /// Flow Matching's ODE solver.
+    pub fm_solver: fm::Solver,
+    /// DDPM's training steps T.
+    pub ddpm_steps: usize,
+    /// DDPM's clip of clean predictions (in standard deviations of the data).
+    pub ddpm_clip: f32,
+    /// Share of rollouts held out for validation.
+    pub validation_fraction: f64,
+    /// Validation windows evaluated (with fixed noise) at each log line.
+    pub validation_windows: usize,
+    pub log_every: usize,
+    pub checkpoint_every: usize,
+    pub seed: u64,
+}
+
+impl Default for TrainConfig {
+    /// The `cpu` preset.
+    fn default() -> Self {
+        Self {
+            steps: 6000,
+            batch: 256,
+            lr: 1e-3,
+            warmup: 500,
+            grad_clip: 1.0,
+            fm_time: fm::TimeDistribution::Uniform,
+            fm_solver: fm::Solver::Euler,
+            ddpm_steps: 100,
+            ddpm_clip: 6.0,
+            validation_fraction: 0.05,
+            validation_windows: 1024,
+            log_every: 50,
+            checkpoint_every: 500,
+            seed: 0,
+        }
+    }
+}
+
+impl TrainConfig {
+    pub fn objective(&self, name: &str) -> Result<Objective, ModelError> {
+        match name {
+            "fm" => Ok(Objective::Fm { time: self.fm_time, solver: self.fm_solver }),
+            "ddpm" => Ok(Objective::Ddpm { steps: self.ddpm_steps, clip: self.ddpm_clip }),
+            other => Err(ModelError::Invalid(format!("unknown objective '{other}'; choose fm or ddpm"))),
+        }
+    }
+}
+
+/// All windows of a dataset, interleaved and normalised, split by rollout into training and
+/// validation sets.
+pub struct WindowSet {
+    pub layout: TokenLayout,
+    pub train: Vec<f32>,
+    pub validation: Vec<f32>,
+}
+
+impl WindowSet {
+    pub fn from_dataset(
+        dataset: &Dataset,
+        layout: TokenLayout,
+        stats: &Stats,
+        validation_fraction: f64,
+    ) -> Result<Self, ModelError> {
+        let norm = Normaliser::new(&layout, stats);
+        let w = layout.window_len();
+        let (mut train, mut validation) = (Vec::new(), Vec::new());
+        for (s, (_, shard)) in dataset.load_all()?.iter().enumerate() {
+            for t in window_starts(shard, layout.spec) {
+                let win = window(shard, layout.spec, t);
+                let mut row = layout.interleave(&win.states, &win.actions);
+                norm.normalise(&mut row, 0, w);
+                // A rollout goes wholly to one side, so overlapping windows never straddle it.
+                let key = splitmix((s as u64) << 32 | u64::from(shard.rollout[t]));
+                let held_out = ((key >> 11) as f64 / (1u64 << 53) as f64) < validation_fraction;
+                let set = if held_out { &mut validation } else { &mut train };
+                set.extend(row);
+            }
+        }
+        if train.is_empty() {
+            return Err(ModelError::Invalid(format!(
+                "{}: no training windows of history {} and horizon {} (episodes too short?)",
+                dataset.dir.display(),
+                layout.spec.history,
+                layout.spec.horizon
+            )));
+        }
+        Ok(Self { layout, train, validation })
+    }
+
+    pub fn train_len(&self) -> usize {
+        self.train.len() / self.layout.window_len()
+    }
+
+    pub fn validation_len(&self) -> usize {
+        self.validation.len() / self.layout.window_len()
+    }
+}
+
+/// A well-mixed 64-bit hash (SplitMix64's finaliser).
+fn splitmix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// The model, its optimiser and where training stands.
+pub struct Trainer {
+    pub model: TrajectoryModel,
+    pub config: TrainConfig,
+    pub adam: Adam,
+    pub step: usize,
+    /// Checksums of the dataset's shards (a resume must see the same data).
+    pub dataset_key: String,
+    data: WindowSet,
+}
+
+const FORMAT: &str = "flowmimic-model/1";
+pub const MODEL_FILE: &str = "model.safetensors";
+pub const STATS_FILE: &str = "stats.safetensors";
+pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
+
+/// What `model.safetensors` records besides the weights.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct ModelMeta {
+    config: ModelConfig,
+    objective: Objective,
+    layout: TokenLayout,
+    step: usize,
+    dataset: String,
+}
+
+impl Trainer {
+    /// A fresh model for `dataset`, with the layout of its states and actions.
+    pub fn new(
+        layout: TokenLayout,
+        config: ModelConfig,
+        objective: Objective,
+        train: TrainConfig,
+        stats: Stats,
+        data: WindowSet,
+        dataset_key: String,
+    ) -> Self {
+        let mut rng = StdRng::seed_from_u64(train.seed);
+        let net = Transformer::new(config.transformer(&layout), &mut rng);
+        let adam = Adam::new(net.num_params());
+        let norm = Normaliser::new(&layout, &stats);
+        let model = TrajectoryModel { config, objective, net: TrajectoryNet { layout, net }, stats, norm };
+        Self { model, config: train, adam, step: 0, dataset_key, data }
+    }
+
+    /// Continues from `dir`'s checkpoint; refuses a checkpoint of another model, objective or
+    /// dataset.
+    pub fn resume(dir: &Path, fresh: Trainer) -> Result<Self, ModelError> {
+        let file = TensorFile::open(&dir.join(CHECKPOINT_FILE))?;
+        let meta: ModelMeta =
+            serde_json::from_str(file.meta("model")?).map_err(|e| file.error(format!("metadata 'model': {e}")))?;
+        let mut t = fresh;
+        let ours = t.meta();
+        let differs = |what: &str, a: String, b: String| {
+            file.error(format!("was trained with {what} {a}, this run asks for {b}; use another output directory"))
+        };
+        if meta.config != ours.config || meta.layout != ours.layout {
+            return Err(differs("model", format!("{:?}", meta.config), format!("{:?}", ours.config)).into());
+        }
+        if meta.objective.name() != ours.objective.name() {
+            return Err(differs("objective", meta.objective.name().into(), ours.objective.name().into()).into());
+        }
+        if meta.dataset != ours.dataset {
+            return Err(file.error("was trained on another dataset (shard checksums differ)").into());
+        }
+        let n = t.model.net.net.num_params();
+        t.model.net.net.params = file.f32("params", &[n])?;
+        t.adam.m = file.f32("adam_m", &[n])?;
+        t.adam.v = file.f32("adam_v", &[n])?;
+        t.adam.t = meta.step as u64;
+        t.step = meta.step;
+        Ok(t)
+    }
+
+    fn meta(&self) -> ModelMeta {
+        ModelMeta {
+            config: self.model.config,
+            objective: self.model.objective,
+            layout: *self.model.layout(),
+            step: self.step,
+            dataset: self.dataset_key.clone(),
+        }
+    }
+
+    pub fn data(&self) -> &WindowSet {
+        &self.data
+    }
+
+    /// Learning rate at the current step (linear warm-up, then constant).
+    pub fn lr(&self) -> f32 {
+        self.config.lr * ((self.step + 1) as f32 / self.config.warmup.max(1) as f32).min(1.0)
+    }
+
+    /// Conditioning and clean futures of the given rows of `set`.
+    fn split(&self, set: &[f32], rows: &[usize]) -> (Vec<f32>, Vec<f32>) {
+        let layout = self.model.layout();
+        let (w, c) = (layout.window_len(), layout.cond_len());
+        let (mut cond, mut future) = (Vec::new(), Vec::new());
+        for &r in rows {
+            cond.extend_from_slice(&set[r * w..r * w + c]);
+            future.extend_from_slice(&set[r * w + c..(r + 1) * w]);
+        }
+        (cond, future)
+    }
+
+    fn training_batch(&self, clean: &[f32], rng: &mut StdRng) -> TrainingBatch {
+        let dim = self.model.layout().future_len();
+        match self.model.objective {
+            Objective::Fm { time, .. } => fm::training_batch(clean, dim, time, rng),
+            Objective::Ddpm { steps, .. } => ddpm::training_batch(&ddpm::Schedule::cosine(steps), clean, dim, rng),
+        }
+    }
+
+    /// Mean squared error of the prediction on `rows` of `set`, and the parameter gradient
+    /// when asked.
+    fn loss(&self, set: &[f32], rows: &[usize], rng: &mut StdRng, grads: bool) -> (f32, Option<Vec<f32>>) {
+        let net = &self.model.net;
+        let (cond, clean) = self.split(set, rows);
+        let batch = self.training_batch(&clean, rng);
+        let n = rows.len();
+        let tape = net.net.forward(&net.tokens(&batch.x, &cond, n), &batch.t, n);
+        let pred = net.future(&tape.output);
+        let count = pred.len() as f32;
+        let loss = pred.iter().zip(&batch.target).map(|(p, t)| (p - t) * (p - t)).sum::<f32>() / count;
+        let grads = grads.then(|| {
+            // d loss / d output: zero on the conditioning tokens' entries.
+            let (w, c, f) = (net.layout.window_len(), net.layout.cond_len(), net.layout.future_len());
+            let mut d = vec![0.0; n * w];
+            for i in 0..n {
+                for j in 0..f {
+                    let k = i * f + j;
+                    d[i * w + c + j] = 2.0 * (pred[k] - batch.target[k]) / count;
+                }
+            }
+            let mut g = vec![0.0; net.net.num_params()];
+            net.net.backward(&tape, &d, &mut g);
+            g
+        });
+        (loss, grads)
+    }
+
+    /// One optimiser step on a random batch; returns the batch loss. Each step's randomness
+    /// comes from (seed, step), so a resumed run continues exactly as an uninterrupted one.
+    pub fn train_step(&mut self) -> Result<f32, ModelError> {
+        let mut rng = StdRng::seed_from_u64(self.config.seed ^ (self.step as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let rows: Vec<usize> = (0..self.config.batch).map(|_| rng.random_range(0..self.data.train_len())).collect();
+        let (loss, grads) = self.loss(&self.data.train, &rows, &mut rng, true);
+        let mut grads = grads.expect("asked for gradients");
+        if !loss.is_finite() {
+            return Err(ModelError::Invalid(format!("training loss is {loss} at step {}", self.step)));
+        }
+        let norm = grads.iter().map(|g| g * g).sum::<f32>().sqrt();
+        if norm > self.config.grad_clip {
+            grads.iter_mut().for_each(|g| *g *= self.config.grad_clip / norm);
+        }
+        let lr = self.lr();
+        self.adam.step(&mut self.model.net.net.params, &grads, lr);
+        self.step += 1;
+        Ok(loss)
+    }
+
+    /// Loss on (up to `validation_windows`) held-out windows with fixed noise, comparable
+    /// across steps; `None` without a validation set.
+    pub fn validation_loss(&self) -> Option<f32> {
+        let n = self.data.validation_len().min(self.config.validation_windows);
+        if n == 0 {
+            return None;
+        }
+        let mut rng = StdRng::seed_from_u64(self.config.seed.wrapping_add(1));
+        let chunk = 256;
+        let rows: Vec<usize> = (0..n).collect();
+        let total: f32 =
+            rows.chunks(chunk).map(|r| self.loss(&self.data.validation, r, &mut rng, false).0 * r.len() as f32).sum();
+        Some(total / n as f32)
+    }
+
+    /// Writes the model, its statistics and the checkpoint into `dir`, atomically each.
+    pub fn save(&self, dir: &Path) -> Result<(), ModelError> {
+        let meta = serde_json::to_string(&self.meta()).expect("serialisable");
+        let net = &self.model.net.net;
+        let tensors: Vec<(&str, Vec<usize>, &[f32])> = net
+            .tensors()
+            .iter()
+            .map(|s| (s.name.as_str(), s.shape.clone(), &net.params[s.at..s.at + s.len()]))
+            .collect();
+        let info = HashMap::from([("format".to_string(), FORMAT.to_string()), ("model".to_string(), meta.clone())]);
+        tensors::save(&dir.join(MODEL_FILE), &tensors, info.clone())?;
+        self.model.stats.save(&dir.join(STATS_FILE), &self.dataset_key)?;
+        let n = vec![net.num_params()];
+        let state =
+            [("params", n.clone(), &net.params[..]), ("adam_m", n.clone(), &self.adam.m), ("adam_v", n, &self.adam.v)];
+        tensors::save(&dir.join(CHECKPOINT_FILE), &state, info)?;
+        Ok(())
+    }
+}
+
+impl TrajectoryModel {
+    /// Loads a model directory written by [`Trainer::save`].
+    pub fn load(dir: &Path) -> Result<Self, ModelError> {
+        let file = TensorFile::open(&dir.join(MODEL_FILE))?;
+        if file.meta("format")? != FORMAT {
+            return Err(file.error(format!("not a {FORMAT} file")).into());
+        }
+        let meta: ModelMeta =
+            serde_json::from_str(file.meta("model")?).map_err(|e| file.error(format!("metadata 'model': {e}")))?;
+        let (stats, _) = Stats::load(&dir.join(STATS_FILE))?;
+        if stats.spec != meta.layout.spec {
+            return Err(ModelError::Invalid(format!(
+                "{}: statistics are for {:?}, the model for {:?}",
+                dir.display(),
+                stats.spec,
+                meta.layout.spec
+            )));
+        }
+        let mut rng = StdRng::seed_from_u64(0);
+        let mut net = Transformer::new(meta.config.transformer(&meta.layout), &mut rng);
+        for slot in net.tensors().to_vec() {
+            let values = file.f32(&slot.name, &slot.shape)?;
+            net.params[slot.at..slot.at + slot.len()].copy_from_slice(&values);
+        }
+        if net.params.iter().any(|p| !p.is_finite()) {
+            return Err(file.error("weights contain NaN or infinity").into());
+        }
+        let norm = Normaliser::new(&meta.layout, &stats);
+        Ok(Self {
+            config: meta.config,
+            objective: meta.objective,
+            net: TrajectoryNet { layout: meta.layout, net },
+            stats,
+            norm,
+        })
+    }
+
+    /// Refuses a model whose state, action or window sizes differ from `layout`'s.
+    pub fn check_layout(&self, layout: &TokenLayout, what: &str) -> Result<(), ModelError> {
+        let ours = self.layout();
+        if ours.state_dim != layout.state_dim || ours.action_dim != layout.action_dim || ours.spec != layout.spec {
+            return Err(ModelError::Invalid(format!(
+                "the model has states of {}, actions of {}, history {} and horizon {}; {what} has {}, {}, {} and {}",
+                ours.state_dim,
+                ours.action_dim,
+                ours.spec.history,
+                ours.spec.horizon,
+                layout.state_dim,
+                layout.action_dim,
+                layout.spec.history,
+                layout.spec.horizon
+            )));
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,251 @@
+//! The trajectory model: a [`Transformer`] over one token per time step of a window, with the
+//! dataset's normalisation, trained with Flow Matching or DDPM, and its sampling API.
+//!
+//! A window interleaves states and actions, `[s_{t-N}, a_{t-N}, ..., s_t, a_t, ..., s_{t+H}, a_{t+H}]`.
+//! Its prefix up to and including `s_t` is the conditioning `O_t` (clean); the rest is the
+//! future `tau_t = [a_t, s_{t+1}, a_{t+1}, ...]` that the model denoises. Token k is
+//! `[s_{t-N+k}, a_{t-N+k}]`, so the network sees `concat(O_t, tau_t)` reshaped to
+//! `(N + 1 + H) x (state + action)`; which entries are clean is fixed by position, and each
+//! position has its own learned embedding. The loss and the sampler only look at `tau_t`.
+
+use crate::fm::{self, Solver};
+use crate::{Guidance, Network, ddpm};
+use flowmimic_data::{Stats, WindowSpec};
+use flowmimic_nn::{Transformer, TransformerConfig};
+use rand::Rng;
+use rand_distr::{Distribution, StandardNormal};
+use serde::{Deserialize, Serialize};
+
+/// Where conditioning and future lie in a window.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TokenLayout {
+    pub state_dim: usize,
+    pub action_dim: usize,
+    pub spec: WindowSpec,
+}
+
+impl TokenLayout {
+    pub fn token_dim(&self) -> usize {
+        self.state_dim + self.action_dim
+    }
+
+    pub fn tokens(&self) -> usize {
+        self.spec.history + 1 + self.spec.horizon
+    }
+
+    /// Length of a whole interleaved window.
+    pub fn window_len(&self) -> usize {
+        self.tokens() * self.token_dim()
+    }
+
+    /// Length of the conditioning `O_t`: N (state, action) pairs and `s_t`.
+    pub fn cond_len(&self) -> usize {
+        self.spec.history * self.token_dim() + self.state_dim
+    }
+
+    /// Length of the future `tau_t`.
+    pub fn future_len(&self) -> usize {
+        self.window_len() - self.cond_len()
+    }
+
+    /// Interleaves `states` (k x state) and `actions` (k or k - 1 x action) as
+    /// `[s_0, a_0, s_1, a_1, ...]`.
+    pub fn interleave(&self, states: &[f32], actions: &[f32]) -> Vec<f32> {
+        let (sd, ad) = (self.state_dim, self.action_dim);
+        let mut out = Vec::with_capacity(states.len() + actions.len());
+        for (k, s) in states.chunks_exact(sd).enumerate() {
+            out.extend_from_slice(s);
+            out.extend_from_slice(actions.get(k * ad..(k + 1) * ad).unwrap_or(&[]));
+        }
+        out
+    }
+}
+
+/// Model sizes and the window they cover (a preset's `[model]` table).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ModelConfig {
+    /// History N (past states and actions the model is conditioned on).
+    pub history: usize,
+    /// Prediction horizon H.
+    pub horizon: usize,
+    pub d_model: usize,
+    pub heads: usize,
+    pub layers: usize,
+    pub d_ff: usize,
+    pub time_features: usize,
+}
+
+impl Default for ModelConfig {
+    /// The `cpu` preset: about 0.8 M parameters.
+    fn default() -> Self {
+        Self { history: 4, horizon: 8, d_model: 128, heads: 4, layers: 4, d_ff: 512, time_features: 64 }
+    }
+}
+
+impl ModelConfig {
+    pub fn spec(&self) -> WindowSpec {
+        WindowSpec { history: self.history, horizon: self.horizon }
+    }
+
+    pub fn transformer(&self, layout: &TokenLayout) -> TransformerConfig {
+        TransformerConfig {
+            token_dim: layout.token_dim(),
+            tokens: layout.tokens(),
+            d_model: self.d_model,
+            heads: self.heads,
+            layers: self.layers,
+            d_ff: self.d_ff,
+            time_features: self.time_features,
+        }
+    }
+}
+
+/// The generative objective and its sampler.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Objective {
+    /// Flow Matching: velocity regression, Euler ODE sampler (or Heun).
+    Fm { time: fm::TimeDistribution, solver: Solver },
+    /// DDPM: epsilon prediction on a cosine schedule of `steps`, ancestral sampling respaced
+    /// to the NFE; clean predictions clipped to `clip` standard deviations.
+    Ddpm { steps: usize, clip: f32 },
+}
+
+impl Objective {
+    pub fn name(&self) -> &'static str {
+        match self {
+            Objective::Fm { .. } => "fm",
+            Objective::Ddpm { .. } => "ddpm",
+        }
+    }
+}
+
+/// Per-entry mean and standard deviation of an interleaved window.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Normaliser {
+    pub mean: Vec<f32>,
+    pub std: Vec<f32>,
+}
+
+impl Normaliser {
+    pub fn new(layout: &TokenLayout, stats: &Stats) -> Self {
+        Self {
+            mean: layout.interleave(&stats.state_mean, &stats.action_mean),
+            std: layout.interleave(&stats.state_std, &stats.action_std),
+        }
+    }
+
+    /// Normalises rows whose entries start at `offset` of the window.
+    pub fn normalise(&self, x: &mut [f32], offset: usize, width: usize) {
+        for row in x.chunks_exact_mut(width) {
+            for (j, v) in row.iter_mut().enumerate() {
+                *v = (*v - self.mean[offset + j]) / self.std[offset + j];
+            }
+        }
+    }
+
+    pub fn denormalise(&self, x: &mut [f32], offset: usize, width: usize) {
+        for row in x.chunks_exact_mut(width) {
+            for (j, v) in row.iter_mut().enumerate() {
+                *v = *v * self.std[offset + j] + self.mean[offset + j];
+            }
+        }
+    }
+}
+
+/// The network with its token layout, in normalised units.
+#[derive(Clone, Debug)]
+pub struct TrajectoryNet {
+    pub layout: TokenLayout,
+    pub net: Transformer,
+}
+
+impl TrajectoryNet {
+    /// Tokens `concat(cond_i, x_i)` for each sample.
+    pub fn tokens(&self, x: &[f32], cond: &[f32], n: usize) -> Vec<f32> {
+        let (c, f) = (self.layout.cond_len(), self.layout.future_len());
+        assert_eq!(x.len(), n * f, "future has the wrong length");
+        assert_eq!(cond.len(), n * c, "conditioning has the wrong length");
+        (0..n).flat_map(|i| cond[i * c..(i + 1) * c].iter().chain(&x[i * f..(i + 1) * f]).copied()).collect()
+    }
+
+    /// The future part of each sample's output tokens.
+    pub fn future(&self, output: &[f32]) -> Vec<f32> {
+        let (w, c) = (self.layout.window_len(), self.layout.cond_len());
+        output.chunks_exact(w).flat_map(|row| row[c..].iter().copied()).collect()
+    }
+}
+
+impl Network for TrajectoryNet {
+    fn dim(&self) -> usize {
+        self.layout.future_len()
+    }
+
+    fn predict(&self, x: &[f32], t: &[f32], cond: &[f32], n: usize) -> Vec<f32> {
+        self.future(&self.net.predict(&self.tokens(x, cond, n), t, n))
+    }
+}
+
+/// A trained model: network, normalisation and objective.
+#[derive(Clone, Debug)]
+pub struct TrajectoryModel {
+    pub config: ModelConfig,
+    pub objective: Objective,
+    pub net: TrajectoryNet,
+    pub stats: Stats,
+    pub norm: Normaliser,
+}
+
+/// Guidance in physical units: `grad` is the task cost's gradient at predicted clean futures
+/// (n x future, physical units); the model maps it to its normalised space.
+pub struct TaskGuidance<'a> {
+    pub weight: f32,
+    pub grad: &'a (dyn Fn(&[f32], usize) -> Vec<f32> + Sync),
+    pub steps: std::ops::Range<usize>,
+}
+
+impl TrajectoryModel {
+    pub fn layout(&self) -> &TokenLayout {
+        &self.net.layout
+    }
+
+    /// Samples futures (n x future, physical units) given conditionings (n x cond, physical
+    /// units, as [`TokenLayout::interleave`] of the history's states and actions) with `nfe`
+    /// network evaluations. No gradient of the network is ever taken.
+    pub fn sample(
+        &self,
+        cond: &[f32],
+        n: usize,
+        nfe: usize,
+        guidance: Option<&TaskGuidance>,
+        rng: &mut impl Rng,
+    ) -> Vec<f32> {
+        let (c, f) = (self.layout().cond_len(), self.layout().future_len());
+        let mut cond = cond.to_vec();
+        self.norm.normalise(&mut cond, 0, c);
+        // The cost sees physical units; by the chain rule its normalised gradient is std * grad.
+        let normalised_grad = |x: &[f32], n: usize| -> Vec<f32> {
+            let mut physical = x.to_vec();
+            self.norm.denormalise(&mut physical, c, f);
+            let g = (guidance.expect("only called with guidance").grad)(&physical, n);
+            g.chunks_exact(f).flat_map(|row| row.iter().enumerate().map(|(j, g)| g * self.norm.std[c + j])).collect()
+        };
+        let inner = guidance.map(|g| Guidance { weight: g.weight, grad: &normalised_grad, steps: g.steps.clone() });
+        let noise: Vec<f32> = (0..n * f).map(|_| StandardNormal.sample(rng)).collect();
+        let mut x = match self.objective {
+            Objective::Fm { solver, .. } => fm::sample(&self.net, &cond, noise, n, nfe, solver, inner.as_ref()),
+            Objective::Ddpm { steps, clip } => {
+                let schedule = ddpm::Schedule::cosine(steps);
+                ddpm::sample(&self.net, &schedule, &cond, noise, n, nfe, clip, inner.as_ref(), rng)
+            }
+        };
+        self.norm.denormalise(&mut x, c, f);
+        x
+    }
+
+    /// Network FLOPs of one sampling call for `n` samples at `nfe`.
+    pub fn sample_flops(&self, n: usize, nfe: usize) -> f64 {
+        self.net.net.flops_per_sample() * (n * nfe) as f64
+    }
+}
