@@ -3,10 +3,16 @@
 
 MUJOCO := third_party/mujoco/libmujoco.so
 
-.PHONY: run test lint bench mujoco
+.PHONY: run demo test lint bench mujoco
 
+# The whole pipeline on the cpu preset: clips -> experts -> rollouts -> FM and DDPM -> evaluation.
 run: $(MUJOCO)
-	cargo run --release -- sim hold
+	cargo run --release -- pipeline
+
+# Minutes instead of an hour: the shipped models walk on a joystick and reach.
+demo: $(MUJOCO)
+	cargo run --release -- demo
+	cargo run --release -- render runs/demo/reach.rollout.safetensors
 
 test: $(MUJOCO)
 	cargo test --workspace
@@ -17,6 +23,7 @@ lint: $(MUJOCO)
 
 bench: $(MUJOCO)
 	cargo run --release -- bench sim
+	cargo run --release -- bench model
 
 mujoco: $(MUJOCO)
 

@@ -40,6 +40,13 @@ pub struct Common {
     clip: Option<PathBuf>,
 }
 
+impl Common {
+    /// Settings for a programmatic run (the pipeline): models as LABEL=DIR.
+    pub fn new(models: Vec<String>, out: PathBuf, quick: bool) -> Self {
+        Self { models, out, quick, trials: None, seed: 0, clip: None }
+    }
+}
+
 #[derive(Subcommand)]
 pub enum EvalCommand {
     /// Unguided walking under a random 0-0.5 m/s kick every second (paper Fig. 2): steps
@@ -249,7 +256,14 @@ fn machine() -> String {
 }
 
 /// Writes the JSON summary, appends a report section, and says where everything went.
-fn finish(out: &Path, name: &str, title: &str, notes: &str, summaries: &[Summary], table: String) -> Result<()> {
+fn finish(
+    out: &Path,
+    models: &[Labelled],
+    (name, title): (&str, &str),
+    notes: &str,
+    summaries: &[Summary],
+    table: String,
+) -> Result<()> {
     flowmimic_io::write_atomic(
         &out.join(format!("{name}.json")),
         serde_json::to_string_pretty(&summaries)?.as_bytes(),
@@ -257,12 +271,30 @@ fn finish(out: &Path, name: &str, title: &str, notes: &str, summaries: &[Summary
     let report = out.join("report.md");
     let mut text = flowmimic_io::read_to_string(&report).unwrap_or_else(|_| "# flowmimic evaluation report\n".into());
     let args: Vec<String> = std::env::args().skip(1).collect();
+    let described: Vec<String> = models
+        .iter()
+        .map(|m| {
+            let c = &m.model.config;
+            format!(
+                "`{}` = `{}` ({}, N {} H {}, d {} x {} layers, {} heads)",
+                m.label,
+                m.dir.display(),
+                m.model.objective.name().to_uppercase(),
+                c.history,
+                c.horizon,
+                c.d_model,
+                c.layers,
+                c.heads
+            )
+        })
+        .collect();
     write!(
         text,
-        "\n## {title}\n\n`flowmimic {}` on {} ({})\n\n{notes}\n\n{table}\nRaw trials: `{name}.csv`; summary: `{name}.json`.\n\n![{name}]({name}.png)\n",
+        "\n## {title}\n\n`flowmimic {}` on {} ({})\n\nModels: {}.\n\n{notes}\n\n{table}\nRaw trials: `{name}.csv`; summary: `{name}.json`.\n\n![{name}]({name}.png)\n",
         args.join(" "),
         machine(),
-        chrono_now()
+        chrono_now(),
+        described.join("; ")
     )?;
     flowmimic_io::write_atomic(&report, text.as_bytes())?;
     println!("{table}");
@@ -298,6 +330,72 @@ fn progress_for(total_steps: usize) -> (Progress, impl Fn(&Progress, &StepReport
     })
 }
 
+/// How one experiment is written down: file stem, report heading, raw columns, the column
+/// plotted against the swept value, and the Markdown table's header.
+struct Experiment {
+    name: &'static str,
+    title: &'static str,
+    columns: &'static [&'static str],
+    plot: &'static str,
+    x_label: &'static str,
+    y_label: &'static str,
+    header: &'static str,
+}
+
+/// Runs (or reuses) every model at every point, one row per trial; plots `plot` against the
+/// swept value (NFE when `by_nfe`, else the guidance scale), and the fall rate when recorded;
+/// returns the summaries and the Markdown table.
+fn sweep(
+    exp: &Experiment,
+    out: &Path,
+    models: &[Labelled],
+    points: &[Point],
+    trials: usize,
+    by_nfe: bool,
+    mut run: impl FnMut(&Labelled, Point) -> Result<Vec<Vec<f64>>>,
+    row: impl Fn(&Labelled, &Summary) -> String,
+) -> Result<(Vec<Summary>, String)> {
+    let mut stored = Sweep::open(out.join(format!("{}.csv", exp.name)), exp.columns);
+    let x_of = |p: &Point| if by_nfe { p.nfe as f64 } else { f64::from(p.scale) };
+    let mut chart = Chart::new(exp.title, exp.x_label, exp.y_label);
+    let mut falls = Chart::new(&format!("{}: falls", exp.title), exp.x_label, "fall rate");
+    if by_nfe {
+        chart = chart.log_x();
+        falls = falls.log_x();
+    }
+    let (mut summaries, mut table) = (Vec::new(), format!("{}\n", exp.header));
+    for m in models {
+        let (mut line, mut band, mut fell) = (Vec::new(), Vec::new(), Vec::new());
+        for &point in points {
+            eprintln!("{}: {} NFE {} w {} ({trials} trials)", exp.name, m.label, point.nfe, point.scale);
+            let rows = stored.point(m, point, trials, || run(m, point))?;
+            let s = summary(m, point, &rows, exp.columns);
+            let (mean, std) = (s.mean[exp.plot], s.std[exp.plot]);
+            line.push((x_of(&point), mean));
+            band.push((x_of(&point), mean - std, mean + std));
+            if let Some(f) = s.mean.get("fell") {
+                fell.push((x_of(&point), *f));
+            }
+            table.push_str(&row(m, &s));
+            table.push('\n');
+            summaries.push(s);
+        }
+        let series = Series::line(&m.label, line);
+        chart = chart.series(if trials > 1 { series.with_band(band) } else { series });
+        falls = falls.series(Series::line(&m.label, fell));
+    }
+    chart.save(&out.join(exp.name))?;
+    if exp.columns.contains(&"fell") {
+        falls.save(&out.join(format!("{}_falls", exp.name)))?;
+    }
+    Ok((summaries, table))
+}
+
+/// `1.0` for true, so falls and successes average into rates.
+fn rate(b: bool) -> f64 {
+    f64::from(u8::from(b))
+}
+
 pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     let common = match &cmd {
         EvalCommand::Survival { common, .. }
@@ -310,280 +408,278 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     let models = load_models(&common.models)?;
     let clip = start_clip(humanoid, common.clip.as_deref())?;
     let out = &common.out;
+    let seed = common.seed;
     let trials = |full: usize, quick: usize| common.trials.unwrap_or(if common.quick { quick } else { full }).max(1);
+    let by_nfe = |nfe: &[usize]| nfe.iter().map(|&n| Point { nfe: n, scale: 0.0, seed }).collect::<Vec<_>>();
+    let by_scale =
+        |scales: &[f32], nfe: usize| scales.iter().map(|&w| Point { nfe, scale: w, seed }).collect::<Vec<_>>();
+    // Runs a protocol with a progress bar over its control steps.
+    let with_progress = |steps: usize, f: &mut dyn FnMut(&dyn Fn(&StepReport)) -> Result<Vec<Vec<f64>>>| {
+        let (p, report) = progress_for(steps);
+        let rows = f(&|r| report(&p, r));
+        p.finish();
+        rows
+    };
     match cmd {
         EvalCommand::Survival { nfe, seconds, .. } => {
             let trials = trials(50, 8);
             let seconds = seconds.unwrap_or(if common.quick { 10.0 } else { 1000.0 / flowmimic_sim::CONTROL_HZ });
-            let columns = ["steps"];
-            let mut sweep = Sweep::open(out.join("survival.csv"), &columns);
-            let mut summaries = Vec::new();
-            let mut chart = Chart::new("survival under random kicks", "NFE", "control steps survived").log_x();
-            let mut table = String::from(
-                "| model | objective | NFE | steps survived (mean ± std) | paper FM / DDPM |\n|---|---|---|---|---|\n",
-            );
-            for m in &models {
-                let mut line = Vec::new();
-                let mut band = Vec::new();
-                for &n in &nfe {
-                    let point = Point { nfe: n, scale: 0.0, seed: common.seed };
-                    eprintln!("survival: {} NFE {n}, {trials} trials, cap {seconds:.1} s", m.label);
-                    let rows = sweep.point(m, point, trials, || {
-                        let (p, report) = progress_for((seconds * flowmimic_sim::CONTROL_HZ).round() as usize);
-                        let survived =
-                            protocols::survival(&m.bench(humanoid, &clip), point, trials, seconds, |r| report(&p, r))?;
-                        p.finish();
+            let steps = (seconds * flowmimic_sim::CONTROL_HZ).round() as usize;
+            let exp = Experiment {
+                name: "survival",
+                title: "Survival against NFE (paper Fig. 2)",
+                columns: &["steps"],
+                plot: "steps",
+                x_label: "NFE",
+                y_label: "control steps survived",
+                header: "| model | objective | NFE | steps survived (mean ± std) | paper FM / DDPM |\n|---|---|---|---|---|",
+            };
+            let (summaries, table) = sweep(
+                &exp,
+                out,
+                &models,
+                &by_nfe(&nfe),
+                trials,
+                true,
+                |m, point| {
+                    with_progress(steps, &mut |report| {
+                        let survived = protocols::survival(&m.bench(humanoid, &clip), point, trials, seconds, report)?;
                         Ok(survived.iter().map(|&s| vec![s as f64]).collect())
-                    })?;
-                    let s = summary(m, point, &rows, &columns);
-                    let (mean, std) = (s.mean["steps"], s.std["steps"]);
-                    line.push((n as f64, mean));
-                    band.push((n as f64, mean - std, mean + std));
-                    let paper = match n {
+                    })
+                },
+                |m, s| {
+                    let paper = match s.nfe {
                         1 => "280 / 30",
                         5 => "820 / 280",
                         20 => "≈470 / ≈470",
                         _ => "",
                     };
-                    writeln!(table, "| {} | {} | {n} | {mean:.0} ± {std:.0} | {paper} |", m.label, s.objective)?;
-                    summaries.push(s);
-                }
-                chart = chart.series(Series::line(&m.label, line).with_band(band));
-            }
-            chart.save(&out.join("survival"))?;
+                    format!(
+                        "| {} | {} | {} | {:.0} ± {:.0} | {paper} |",
+                        m.label, s.objective, s.nfe, s.mean["steps"], s.std["steps"]
+                    )
+                },
+            )?;
             let notes = format!(
                 "Unguided walking, a random planar root-velocity kick of uniform 0-0.5 m/s in a uniform direction every 1 s, \
-                 failure when the head is below 0.2 m; {trials} trials per point, episode cap {seconds:.1} s ({} steps), seed {}.",
-                (seconds * flowmimic_sim::CONTROL_HZ).round(),
-                common.seed
+                 failure when the head is below 0.2 m; {trials} trials per point, episode cap {seconds:.1} s ({steps} steps), seed {seed}."
             );
-            finish(out, "survival", "Survival against NFE (paper Fig. 2)", &notes, &summaries, table)?;
+            finish(out, &models, (exp.name, exp.title), &notes, &summaries, table)?;
         }
         EvalCommand::Joystick { scales, nfe, .. } => {
             let trials = trials(10, 2);
-            let columns = ["velocity_rmse", "yaw_rate_rmse", "fell"];
-            let mut sweep = Sweep::open(out.join("joystick.csv"), &columns);
-            let (mut summaries, mut rmse_chart, mut fall_chart) = (
-                Vec::new(),
-                Chart::new("joystick velocity tracking", "guidance scale w", "velocity RMSE (m/s)"),
-                Chart::new("joystick falls", "guidance scale w", "fall rate"),
-            );
-            let mut table = String::from(
-                "| model | H | w | velocity RMSE (m/s) | yaw-rate RMSE (rad/s) | falls |\n|---|---|---|---|---|---|\n",
-            );
-            for m in &models {
-                let (mut line, mut falls) = (Vec::new(), Vec::new());
-                for &scale in &scales {
-                    let point = Point { nfe, scale, seed: common.seed };
-                    let rows = sweep.point(m, point, trials, || {
-                        let (p, report) = progress_for(360);
-                        let r = protocols::joystick(&m.bench(humanoid, &clip), point, trials, |r| report(&p, r))?;
-                        p.finish();
-                        Ok(r.iter()
-                            .map(|t| vec![t.velocity_rmse, t.yaw_rate_rmse, f64::from(u8::from(t.fell))])
-                            .collect())
-                    })?;
-                    let s = summary(m, point, &rows, &columns);
-                    line.push((f64::from(scale), s.mean["velocity_rmse"]));
-                    falls.push((f64::from(scale), s.mean["fell"]));
-                    writeln!(
-                        table,
-                        "| {} | {} | {scale} | {:.3} ± {:.3} | {:.3} | {:.0}% |",
+            let exp = Experiment {
+                name: "joystick",
+                title: "Joystick tracking against guidance (paper Fig. 3)",
+                columns: &["velocity_rmse", "yaw_rate_rmse", "fell"],
+                plot: "velocity_rmse",
+                x_label: "guidance scale w",
+                y_label: "velocity RMSE (m/s)",
+                header: "| model | H | w | velocity RMSE (m/s) | yaw-rate RMSE (rad/s) | falls |\n|---|---|---|---|---|---|",
+            };
+            let (summaries, table) = sweep(
+                &exp,
+                out,
+                &models,
+                &by_scale(&scales, nfe),
+                trials,
+                false,
+                |m, point| {
+                    with_progress(360, &mut |report| {
+                        let r = protocols::joystick(&m.bench(humanoid, &clip), point, trials, report)?;
+                        Ok(r.iter().map(|t| vec![t.velocity_rmse, t.yaw_rate_rmse, rate(t.fell)]).collect())
+                    })
+                },
+                |m, s| {
+                    format!(
+                        "| {} | {} | {} | {:.3} ± {:.3} | {:.3} | {:.0}% |",
                         m.label,
                         s.horizon,
+                        s.scale,
                         s.mean["velocity_rmse"],
                         s.std["velocity_rmse"],
                         s.mean["yaw_rate_rmse"],
                         100.0 * s.mean["fell"]
-                    )?;
-                    summaries.push(s);
-                }
-                rmse_chart = rmse_chart.series(Series::line(&m.label, line));
-                fall_chart = fall_chart.series(Series::line(&m.label, falls));
-            }
-            rmse_chart.save(&out.join("joystick"))?;
-            fall_chart.save(&out.join("joystick_falls"))?;
+                    )
+                },
+            )?;
             let notes = format!(
                 "Forward 1.0 m/s, backward 0.5 m/s, turn left and right (0.8 m/s at 0.6 rad/s), 3 s each; RMSE between commanded \
                  and achieved planar root velocity (character frame) over the steps before any fall; NFE {nfe}, {trials} trials. \
                  Paper: RMSE ≈ 0.55 at w = 40; 1.05 at H = 2 to 0.70 at H = 16."
             );
-            finish(out, "joystick", "Joystick tracking against guidance (paper Fig. 3)", &notes, &summaries, table)?;
+            finish(out, &models, (exp.name, exp.title), &notes, &summaries, table)?;
         }
         EvalCommand::Reach { scales, nfe, .. } => {
             let trials = trials(20, 4);
-            let columns = ["mean", "rms", "min", "fell"];
-            let mut sweep = Sweep::open(out.join("reach.csv"), &columns);
-            let (mut summaries, mut chart) =
-                (Vec::new(), Chart::new("hand reaching", "guidance scale w", "hand-target distance (m)"));
-            let mut table = String::from(
-                "| model | H | w | mean distance (m) | RMS (m) | closest (m) | falls |\n|---|---|---|---|---|---|---|\n",
-            );
-            for m in &models {
-                let mut line = Vec::new();
-                for &scale in &scales {
-                    let point = Point { nfe, scale, seed: common.seed };
-                    let rows = sweep.point(m, point, trials, || {
-                        let (p, report) = progress_for(120);
-                        let r = protocols::reach(&m.bench(humanoid, &clip), point, trials, |r| report(&p, r))?;
-                        p.finish();
-                        Ok(r.iter().map(|t| vec![t.mean, t.rms, t.min, f64::from(u8::from(t.fell))]).collect())
-                    })?;
-                    let s = summary(m, point, &rows, &columns);
-                    line.push((f64::from(scale), s.mean["mean"]));
-                    writeln!(
-                        table,
-                        "| {} | {} | {scale} | {:.3} | {:.3} | {:.3} | {:.0}% |",
+            let exp = Experiment {
+                name: "reach",
+                title: "Hand reaching against guidance (paper Fig. 4)",
+                columns: &["mean", "rms", "min", "fell"],
+                plot: "mean",
+                x_label: "guidance scale w",
+                y_label: "hand-target distance (m)",
+                header: "| model | H | w | mean distance (m) | RMS (m) | closest (m) | falls |\n|---|---|---|---|---|---|---|",
+            };
+            let (summaries, table) = sweep(
+                &exp,
+                out,
+                &models,
+                &by_scale(&scales, nfe),
+                trials,
+                false,
+                |m, point| {
+                    with_progress(120, &mut |report| {
+                        let r = protocols::reach(&m.bench(humanoid, &clip), point, trials, report)?;
+                        Ok(r.iter().map(|t| vec![t.mean, t.rms, t.min, rate(t.fell)]).collect())
+                    })
+                },
+                |m, s| {
+                    format!(
+                        "| {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.0}% |",
                         m.label,
                         s.horizon,
+                        s.scale,
                         s.mean["mean"],
                         s.mean["rms"],
                         s.mean["min"],
                         100.0 * s.mean["fell"]
-                    )?;
-                    summaries.push(s);
-                }
-                chart = chart.series(Series::line(&m.label, line));
-            }
-            chart.save(&out.join("reach"))?;
+                    )
+                },
+            )?;
             let notes = format!(
                 "Right-hand targets 1.5-3 m ahead of each trial's start, within 0.5 m to either side, 0.9-1.5 m high; 4 s of guided \
                  walking; distance averaged over the trial (mean, RMS) and the closest approach; NFE {nfe}, {trials} trials. \
                  Paper: RMSE ≈ 1.1 at w = 100."
             );
-            finish(out, "reach", "Hand reaching against guidance (paper Fig. 4)", &notes, &summaries, table)?;
+            finish(out, &models, (exp.name, exp.title), &notes, &summaries, table)?;
         }
         EvalCommand::Compose { scales, nfe, .. } => {
             let trials = trials(20, 4);
-            let columns = ["success", "pelvis_min", "hand_min", "fell"];
-            let mut sweep = Sweep::open(out.join("compose.csv"), &columns);
-            let mut summaries = Vec::new();
-            let mut chart = Chart::new("walk to a waypoint and touch a target", "guidance scale w", "success rate");
-            let mut table = String::from(
-                "| model | w | success | closest pelvis (m) | closest hand (m) | falls |\n|---|---|---|---|---|---|\n",
-            );
-            for m in &models {
-                let mut line = Vec::new();
-                for &scale in &scales {
-                    let point = Point { nfe, scale, seed: common.seed };
-                    let rows = sweep.point(m, point, trials, || {
-                        let (p, report) = progress_for(300);
-                        let r = protocols::compose(&m.bench(humanoid, &clip), point, trials, |r| report(&p, r))?;
-                        p.finish();
-                        Ok(r.iter()
-                            .map(|t| {
-                                vec![
-                                    f64::from(u8::from(t.success)),
-                                    t.pelvis_min,
-                                    t.hand_min,
-                                    f64::from(u8::from(t.fell)),
-                                ]
-                            })
-                            .collect())
-                    })?;
-                    let s = summary(m, point, &rows, &columns);
-                    line.push((f64::from(scale), s.mean["success"]));
-                    writeln!(
-                        table,
-                        "| {} | {scale} | {:.0}% | {:.2} | {:.2} | {:.0}% |",
+            let exp = Experiment {
+                name: "compose",
+                title: "Composition: waypoint and reach",
+                columns: &["success", "pelvis_min", "hand_min", "fell"],
+                plot: "success",
+                x_label: "guidance scale w",
+                y_label: "success rate",
+                header: "| model | w | success | closest pelvis (m) | closest hand (m) | falls |\n|---|---|---|---|---|---|",
+            };
+            let (summaries, table) = sweep(
+                &exp,
+                out,
+                &models,
+                &by_scale(&scales, nfe),
+                trials,
+                false,
+                |m, point| {
+                    with_progress(300, &mut |report| {
+                        let r = protocols::compose(&m.bench(humanoid, &clip), point, trials, report)?;
+                        Ok(r.iter().map(|t| vec![rate(t.success), t.pelvis_min, t.hand_min, rate(t.fell)]).collect())
+                    })
+                },
+                |m, s| {
+                    format!(
+                        "| {} | {} | {:.0}% | {:.2} | {:.2} | {:.0}% |",
                         m.label,
+                        s.scale,
                         100.0 * s.mean["success"],
                         s.mean["pelvis_min"],
                         s.mean["hand_min"],
                         100.0 * s.mean["fell"]
-                    )?;
-                    summaries.push(s);
-                }
-                chart = chart.series(Series::line(&m.label, line));
-            }
-            chart.save(&out.join("compose"))?;
+                    )
+                },
+            )?;
             let notes = format!(
                 "Waypoint 3-4 m ahead and up to 1.5 m aside; right-hand target 0.4 m right of it at 1.2 m; 10 s; success when the \
                  pelvis is within 0.5 m of the waypoint and the hand within 0.15 m of the target at the same step; NFE {nfe}, \
                  {trials} trials."
             );
-            finish(out, "compose", "Composition: waypoint and reach", &notes, &summaries, table)?;
+            finish(out, &models, (exp.name, exp.title), &notes, &summaries, table)?;
         }
         EvalCommand::Quality { dataset, nfe, .. } => {
             let trials = trials(16, 4);
             let seconds = if common.quick { 4.0 } else { 10.0 };
             let reference = dataset_features(&dataset)?;
             let (rm, rs) = gaussian(&reference);
-            // The floor: two halves of the reference against each other.
+            // The floor: alternate 10 s blocks of the reference against each other.
             let (even, odd): (Vec<_>, Vec<_>) = reference.iter().enumerate().partition(|(i, _)| (i / 300) % 2 == 0);
             let half =
                 |v: Vec<(usize, &Vec<f64>)>| gaussian(&v.into_iter().map(|(_, f)| f.clone()).collect::<Vec<_>>());
             let ((am, a_s), (bm, bs)) = (half(even), half(odd));
             let floor = frechet_distance(&am, &a_s, &bm, &bs);
-            let columns = ["frechet"];
-            let mut sweep = Sweep::open(out.join("quality.csv"), &columns);
-            let mut summaries = Vec::new();
-            let mut chart = Chart::new("motion quality", "NFE", "Fréchet distance to the data").log_x();
-            let mut table = format!(
-                "| model | NFE | Fréchet distance |\n|---|---|---|\n| reference halves (floor) | – | {floor:.4} |\n"
-            );
-            for m in &models {
-                let mut line = Vec::new();
-                for &n in &nfe {
-                    let point = Point { nfe: n, scale: 0.0, seed: common.seed };
-                    let rows = sweep.point(m, point, 1, || {
-                        let (p, report) = progress_for((seconds * flowmimic_sim::CONTROL_HZ) as usize);
+            let exp = Experiment {
+                name: "quality",
+                title: "Motion quality (Fréchet distance to the data)",
+                columns: &["frechet"],
+                plot: "frechet",
+                x_label: "NFE",
+                y_label: "Fréchet distance",
+                header: "| model | NFE | Fréchet distance |\n|---|---|---|",
+            };
+            let steps = (seconds * flowmimic_sim::CONTROL_HZ) as usize;
+            let (summaries, table) = sweep(
+                &exp,
+                out,
+                &models,
+                &by_nfe(&nfe),
+                1,
+                true,
+                |m, point| {
+                    with_progress(steps, &mut |report| {
                         let f =
-                            protocols::generated_features(&m.bench(humanoid, &clip), point, trials, seconds, |r| {
-                                report(&p, r)
-                            })?;
-                        p.finish();
+                            protocols::generated_features(&m.bench(humanoid, &clip), point, trials, seconds, report)?;
                         let (gm, gs) = gaussian(&f);
                         Ok(vec![vec![frechet_distance(&gm, &gs, &rm, &rs)]])
-                    })?;
-                    line.push((n as f64, rows[0][0]));
-                    writeln!(table, "| {} | {n} | {:.4} |", m.label, rows[0][0])?;
-                    summaries.push(summary(m, point, &rows, &columns));
-                }
-                chart = chart.series(Series::line(&m.label, line));
-            }
-            chart.save(&out.join("quality"))?;
+                    })
+                },
+                |m, s| format!("| {} | {} | {:.4} |", m.label, s.nfe, s.mean["frechet"]),
+            )?;
+            let table = format!("{table}| reference against itself (floor) | – | {floor:.4} |\n");
             let notes = format!(
                 "Features per control step: root height, root velocity (character frame), and head, hand and foot positions \
                  relative to the root (19 numbers); Gaussian fits of unguided generated walking ({trials} trials x {seconds} s, \
-                 steps before any fall) against every state of `{}`.",
+                 steps before any fall) against every state of `{}`; the floor compares alternate 10 s blocks of the data.",
                 dataset.display()
             );
-            finish(out, "quality", "Motion quality (Fréchet distance)", &notes, &summaries, table)?;
+            finish(out, &models, (exp.name, exp.title), &notes, &summaries, table)?;
         }
         EvalCommand::Latency { nfe, .. } => {
-            let columns = ["model_ms", "physics_ms", "total_ms"];
-            let mut sweep = Sweep::open(out.join("latency.csv"), &columns);
-            let mut summaries = Vec::new();
-            let mut chart = Chart::new("time per control step (batch 1)", "NFE", "milliseconds").log_x();
-            let mut table = String::from(
-                "| model | objective | NFE | model ms | physics ms | control Hz |\n|---|---|---|---|---|---|\n",
-            );
-            for m in &models {
-                let mut line = Vec::new();
-                for &n in &nfe {
-                    let point = Point { nfe: n, scale: 0.0, seed: common.seed };
-                    let rows = sweep.point(m, point, 1, || {
-                        let r = protocols::latency(&m.bench(humanoid, &clip), point, 3.0)?;
-                        Ok(vec![vec![r.0, r.1, r.0 + r.1]])
-                    })?;
-                    let (mm, pm) = (rows[0][0], rows[0][1]);
-                    line.push((n as f64, mm + pm));
-                    writeln!(
-                        table,
-                        "| {} | {} | {n} | {mm:.2} | {pm:.2} | {:.0} |",
+            let exp = Experiment {
+                name: "latency",
+                title: "Latency per control step (batch 1)",
+                columns: &["model_ms", "physics_ms", "total_ms"],
+                plot: "total_ms",
+                x_label: "NFE",
+                y_label: "milliseconds",
+                header: "| model | objective | NFE | model ms | physics ms | control Hz |\n|---|---|---|---|---|---|",
+            };
+            let (summaries, table) = sweep(
+                &exp,
+                out,
+                &models,
+                &by_nfe(&nfe),
+                1,
+                true,
+                |m, point| {
+                    let (model_ms, physics_ms) = protocols::latency(&m.bench(humanoid, &clip), point, 3.0)?;
+                    Ok(vec![vec![model_ms, physics_ms, model_ms + physics_ms]])
+                },
+                |m, s| {
+                    format!(
+                        "| {} | {} | {} | {:.2} | {:.2} | {:.0} |",
                         m.label,
-                        m.model.objective.name(),
-                        1e3 / (mm + pm)
-                    )?;
-                    summaries.push(summary(m, point, &rows, &columns));
-                }
-                chart = chart.series(Series::line(&m.label, line));
-            }
-            chart.save(&out.join("latency"))?;
+                        s.objective,
+                        s.nfe,
+                        s.mean["model_ms"],
+                        s.mean["physics_ms"],
+                        1e3 / s.mean["total_ms"]
+                    )
+                },
+            )?;
             let notes = "Median over 3 s of unguided walking with one environment; model = one sampling call (all NFE steps), \
                          physics = one 30 Hz step. Paper: FM about 4x faster than DDPM for the same robustness (NFE 5 vs 20).";
-            finish(out, "latency", "Latency per control step", notes, &summaries, table)?;
+            finish(out, &models, (exp.name, exp.title), notes, &summaries, table)?;
         }
     }
     Ok(())

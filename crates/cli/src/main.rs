@@ -4,9 +4,11 @@
 
 mod config;
 mod data;
+mod demo;
 mod eval;
 mod model;
 mod motion;
+mod pipeline;
 mod progress;
 mod run;
 mod track;
@@ -39,6 +41,29 @@ struct Settings {
 
 #[derive(Subcommand)]
 enum Command {
+    /// The shipped model walks on a joystick schedule, then reaches with its right hand while
+    /// walking: rollouts, plots and metrics in seconds.
+    Demo {
+        /// Model directory.
+        #[arg(long, default_value = "pretrained/models/fm")]
+        model: PathBuf,
+        #[arg(short, long, default_value = "runs/demo")]
+        out: PathBuf,
+        #[arg(long, default_value_t = 5)]
+        nfe: usize,
+    },
+    /// The whole job on the preset: clips -> PPO experts -> noisy rollouts -> FM and DDPM
+    /// models -> quick evaluations and report. Stages already done for the same settings are
+    /// skipped; interrupted training resumes.
+    Pipeline {
+        /// Output directory of every stage.
+        #[arg(short, long, default_value = "runs/pipeline")]
+        out: PathBuf,
+        /// Clips to train on (BVH/DeepMimic imports or generated clips); default the generated
+        /// 10 s straight walk.
+        #[arg(long)]
+        clip: Vec<PathBuf>,
+    },
     /// The simulated humanoid: inspect the model, export its MJCF, watch it stand.
     #[command(subcommand)]
     Sim(SimCommand),
@@ -84,6 +109,24 @@ enum Command {
     /// waypoint, or walk-to-a-point-while-reaching). Writes the rollout (states, actions,
     /// commands, timings) for `flowmimic eval` and the viewers.
     Run(run::RunArgs),
+    /// Render a clip (.clip.safetensors) or a rollout (.rollout.safetensors) with MuJoCo,
+    /// offscreen, to an animated GIF or an MP4 (needs ffmpeg), plus a contact sheet PNG.
+    Render {
+        file: PathBuf,
+        /// Output .gif or .mp4; default next to the input.
+        #[arg(short, long)]
+        out: Option<PathBuf>,
+        /// Which environment of a rollout.
+        #[arg(long, default_value_t = 0)]
+        env: usize,
+        #[arg(long, default_value_t = 480)]
+        width: usize,
+        #[arg(long, default_value_t = 360)]
+        height: usize,
+        /// Frames per second of the video (the simulation runs at 30).
+        #[arg(long, default_value_t = 15)]
+        fps: usize,
+    },
     /// The paper's experiments: survival, joystick, reach, compose, quality, latency. Each
     /// writes CSV, JSON and plots and appends to <out>/report.md.
     #[command(subcommand)]
@@ -160,6 +203,32 @@ fn run(cli: Cli) -> Result<()> {
             data::run_collect(&Humanoid::new(config.sim)?, runs, out, config.collect.clone())?
         }
         Command::Dataset(cmd) => data::run_dataset(cmd)?,
+        Command::Demo { model, out, nfe } => demo::run(&model, &out, nfe, &Humanoid::new(config.sim)?)?,
+        Command::Pipeline { out, clip } => pipeline::run(&config, &cli.settings.preset, &out, &clip)?,
+        Command::Render { file, out, env, width, height, fps } => {
+            let humanoid = Humanoid::new(config.sim)?;
+            let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            let frames = if name.ends_with(".clip.safetensors") {
+                flowmimic_viz::Frames::from_clip(&flowmimic_motion::Clip::load(&humanoid, &file)?)
+            } else {
+                let rollout = flowmimic_control::Rollout::load(&file)?;
+                if env >= rollout.envs {
+                    anyhow::bail!("{}: --env {env}, but the rollout has {} environments", file.display(), rollout.envs);
+                }
+                flowmimic_viz::Frames::from_rollout(&rollout, env, &name)
+            };
+            let stem = name.trim_end_matches(".safetensors").to_string();
+            let out = out.unwrap_or_else(|| file.with_file_name(format!("{stem}.gif")));
+            let r = flowmimic_viz::render(&humanoid, &frames, &out, (width, height), fps)?;
+            let files: Vec<String> = r.files.iter().map(|f| f.display().to_string()).collect();
+            println!(
+                "rendered {} frames in {:.1} s ({:.0} ms per frame): {}",
+                r.frames,
+                r.seconds,
+                1e3 * r.seconds / r.frames as f64,
+                files.join(", ")
+            );
+        }
         Command::Eval(cmd) => eval::run(cmd, &Humanoid::new(config.sim)?)?,
         Command::Run(args) => run::run(args, &Humanoid::new(config.sim)?)?,
         Command::Train { dataset, objective, out, steps, resume } => {

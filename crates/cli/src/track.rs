@@ -96,65 +96,7 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
             if let Some(n) = iterations {
                 cfg.iterations = n;
             }
-            let policy_path = out.join(RUN_POLICY);
-            let log_path = out.join("log.csv");
-            let mut trainer = if resume {
-                let t = Trainer::resume(humanoid, clips, cfg.clone(), &policy_path)?;
-                eprintln!("resumed {} at iteration {} ({} env steps)", policy_path.display(), t.iteration, t.env_steps);
-                t
-            } else {
-                if policy_path.exists() {
-                    anyhow::bail!(
-                        "{} exists: pass --resume to continue it, or choose another --out",
-                        policy_path.display()
-                    );
-                }
-                Trainer::new(humanoid, clips, cfg.clone())?
-            };
-            let mut log = CsvLog::open(log_path.clone(), IterationLog::CSV_HEADER, resume.then_some(trainer.iteration));
-            flowmimic_io::write_atomic(&out.join("config.json"), serde_json::to_string_pretty(&cfg)?.as_bytes())?;
-            for (k, reference) in trainer.references.iter().enumerate() {
-                reference.clip.save(&out.join(run_clip_file(k)))?;
-            }
-            eprintln!(
-                "tracking {} with {} envs x {} steps per iteration, policy {} parameters",
-                trainer
-                    .references
-                    .iter()
-                    .map(|r| format!("'{}' ({} frames)", r.clip.name, r.len()))
-                    .collect::<Vec<_>>()
-                    .join(", "),
-                cfg.envs,
-                cfg.horizon,
-                trainer.policy.num_params()
-            );
-            let progress = Progress::new(cfg.iterations, trainer.iteration);
-            while trainer.iteration < cfg.iterations {
-                let line: IterationLog =
-                    trainer.iterate().context("training stopped; the last checkpoint is intact")?;
-                log.rows.push(line.csv_row());
-                let last = trainer.iteration == cfg.iterations;
-                if trainer.iteration % cfg.checkpoint_every.max(1) == 0 || last {
-                    trainer.save(&policy_path)?;
-                    log.save()?;
-                    plot_curves(&out, &log.rows)?;
-                }
-                let status = format!(
-                    "{:>9} steps  reward {:.3}  episode {:>5.1}  fails {:>3}/{:<3}  body err {:.3} m  kl {:.4}  lr {:.1e}  {:>5.0} steps/s",
-                    line.env_steps,
-                    line.mean_reward,
-                    line.episode_length,
-                    line.failures,
-                    line.episodes,
-                    line.body_pos_error,
-                    line.update.kl,
-                    line.update.learning_rate,
-                    line.steps_per_second,
-                );
-                progress.update(trainer.iteration, &status);
-            }
-            progress.finish();
-            eprintln!("wrote {} and {}", policy_path.display(), log_path.display());
+            train(humanoid, clips, &out, &cfg, resume)?;
         }
         TrackCommand::Plot { run } => {
             let text = flowmimic_io::read_to_string(&run.join("log.csv"))?;
@@ -171,5 +113,65 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
             }
         }
     }
+    Ok(())
+}
+
+/// Trains (or with `resume`, continues) an expert on `clips` into the run directory `out`.
+pub fn train(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, out: &Path, cfg: &TrackConfig, resume: bool) -> Result<()> {
+    let policy_path = out.join(RUN_POLICY);
+    let log_path = out.join("log.csv");
+    let mut trainer = if resume {
+        let t = Trainer::resume(humanoid, clips, cfg.clone(), &policy_path)?;
+        eprintln!("resumed {} at iteration {} ({} env steps)", policy_path.display(), t.iteration, t.env_steps);
+        t
+    } else {
+        if policy_path.exists() {
+            anyhow::bail!("{} exists: pass --resume to continue it, or choose another --out", policy_path.display());
+        }
+        Trainer::new(humanoid, clips, cfg.clone())?
+    };
+    let mut log = CsvLog::open(log_path.clone(), IterationLog::CSV_HEADER, resume.then_some(trainer.iteration));
+    flowmimic_io::write_atomic(&out.join("config.json"), serde_json::to_string_pretty(&cfg)?.as_bytes())?;
+    for (k, reference) in trainer.references.iter().enumerate() {
+        reference.clip.save(&out.join(run_clip_file(k)))?;
+    }
+    eprintln!(
+        "tracking {} with {} envs x {} steps per iteration, policy {} parameters",
+        trainer
+            .references
+            .iter()
+            .map(|r| format!("'{}' ({} frames)", r.clip.name, r.len()))
+            .collect::<Vec<_>>()
+            .join(", "),
+        cfg.envs,
+        cfg.horizon,
+        trainer.policy.num_params()
+    );
+    let progress = Progress::new(cfg.iterations, trainer.iteration);
+    while trainer.iteration < cfg.iterations {
+        let line: IterationLog = trainer.iterate().context("training stopped; the last checkpoint is intact")?;
+        log.rows.push(line.csv_row());
+        let last = trainer.iteration == cfg.iterations;
+        if trainer.iteration % cfg.checkpoint_every.max(1) == 0 || last {
+            trainer.save(&policy_path)?;
+            log.save()?;
+            plot_curves(&out, &log.rows)?;
+        }
+        let status = format!(
+            "{:>9} steps  reward {:.3}  episode {:>5.1}  fails {:>3}/{:<3}  body err {:.3} m  kl {:.4}  lr {:.1e}  {:>5.0} steps/s",
+            line.env_steps,
+            line.mean_reward,
+            line.episode_length,
+            line.failures,
+            line.episodes,
+            line.body_pos_error,
+            line.update.kl,
+            line.update.learning_rate,
+            line.steps_per_second,
+        );
+        progress.update(trainer.iteration, &status);
+    }
+    progress.finish();
+    eprintln!("wrote {} and {}", policy_path.display(), log_path.display());
     Ok(())
 }

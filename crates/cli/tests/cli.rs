@@ -76,8 +76,13 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     let (refused, text) = flowmimic(dir, &["train", "data", "--objective", "ddpm", "-o", "fm-part", "--resume"]);
     assert!(!refused && text.contains("objective fm"), "{text}");
     ok(dir, &["train", "data", "--objective", "fm", "-o", "fm-part", "--resume"]);
-    let bytes = |p: &str| std::fs::read(dir.join(p)).unwrap();
-    assert!(bytes("fm/model.safetensors") == bytes("fm-part/model.safetensors"), "resume is not exact");
+    // The tensor bytes after the safetensors header (whose metadata order may vary).
+    let tensors = |p: &str| {
+        let b = std::fs::read(dir.join(p)).unwrap();
+        let header = u64::from_le_bytes(b[..8].try_into().unwrap()) as usize;
+        b[8 + header..].to_vec()
+    };
+    assert!(tensors("fm/model.safetensors") == tensors("fm-part/model.safetensors"), "resume is not exact");
     let ddpm = ok(dir, &["train", "data", "--objective", "ddpm", "-o", "ddpm"]);
     assert!(ddpm.contains("DDPM Transformer"), "{ddpm}");
     // A model trained for another window refuses to resume on these settings.
@@ -91,6 +96,17 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
         let run = ok(dir, &args);
         assert!(run.contains("environments fell") && dir.join(&out).exists(), "{run}");
     }
+    // Rendering needs EGL (Mesa's software OpenGL); where the machine has none, the error
+    // says what to install.
+    let (rendered, text) = flowmimic(dir, &["render", "fm.rollout.safetensors", "--width", "64", "--height", "48"]);
+    if rendered {
+        assert!(dir.join("fm.rollout.gif").exists() && dir.join("fm.rollout_sheet.png").exists(), "{text}");
+    } else {
+        assert!(text.contains("libegl1"), "{text}");
+        eprintln!("rendering not checked here: {text}");
+    }
+    let (refused, text) = flowmimic(dir, &["render", "fm.rollout.safetensors", "--env", "5"]);
+    assert!(!refused && text.contains("2 environments"), "{text}");
     // Evaluations write their raw trials, summary, plot and report, and reuse stored points.
     let models = ["--model", "fm=fm", "--model", "ddpm=ddpm"];
     let survival =
@@ -123,5 +139,27 @@ fn bad_input_is_a_clear_error_not_a_crash() {
     let (success, text) = flowmimic(&dir, &["track", "eval", "no-such-run"]);
     assert!(!success && text.contains("no-such-run"), "{text}");
     assert_eq!(text.matches("No such file").count(), 1, "the cause is said once: {text}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn the_pipeline_runs_every_stage_then_skips_what_is_done() {
+    let dir = workdir("pipeline");
+    let first = ok(&dir, &["pipeline", "-o", "p"]);
+    assert!(first.contains("== train ddpm: done") && first.contains("pipeline finished"), "{first}");
+    assert!(dir.join("p/eval/report.md").exists() && dir.join("p/eval/survival.png").exists());
+    let again = ok(&dir, &["pipeline", "-o", "p"]);
+    assert_eq!(again.matches("(skipped)").count(), 6, "{again}");
+    // Other model settings leave the stages before the model alone, and refuse to overwrite
+    // the trained model.
+    std::fs::write(dir.join("wider.toml"), "[model]\nd_model = 24\n").unwrap();
+    let (success, text) = flowmimic(&dir, &["--config", "wider.toml", "pipeline", "-o", "p"]);
+    assert!(!success && text.matches("(skipped)").count() == 3, "{text}");
+    assert!(text.contains("'train fm'") && text.contains("another output directory"), "{text}");
+    // A damaged artifact stops the pipeline with the stage and the file.
+    std::fs::write(dir.join("p/experts/walk_straight/policy.safetensors"), b"damaged").unwrap();
+    std::fs::remove_file(dir.join("p/experts/walk_straight/stage.json")).unwrap();
+    let (success, text) = flowmimic(&dir, &["pipeline", "-o", "p"]);
+    assert!(!success && text.contains("expert 'walk_straight'") && text.contains("policy.safetensors"), "{text}");
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -11,6 +11,8 @@ pub mod bench;
 mod env;
 mod humanoid;
 pub mod mjcf;
+#[cfg(feature = "render")]
+pub mod render;
 pub mod skeleton;
 pub mod state;
 mod vec_env;
@@ -38,4 +40,6 @@ pub enum SimError {
     NonFiniteState { what: &'static str, index: usize },
     #[error("physics diverged at control step {step} (MuJoCo flagged bad accelerations or produced NaN)")]
     Diverged { step: u64 },
+    #[error("rendering: {0}")]
+    Render(String),
 }
