@@ -330,6 +330,9 @@ fn progress_for(total_steps: usize) -> (Progress, impl Fn(&Progress, &StepReport
     })
 }
 
+/// Per-trial rows of one point.
+type Rows = Result<Vec<Vec<f64>>>;
+
 /// How one experiment is written down: file stem, report heading, raw columns, the column
 /// plotted against the swept value, and the Markdown table's header.
 struct Experiment {
@@ -349,10 +352,8 @@ fn sweep(
     exp: &Experiment,
     out: &Path,
     models: &[Labelled],
-    points: &[Point],
-    trials: usize,
-    by_nfe: bool,
-    mut run: impl FnMut(&Labelled, Point) -> Result<Vec<Vec<f64>>>,
+    (points, trials, by_nfe): (&[Point], usize, bool),
+    mut run: impl FnMut(&Labelled, Point) -> Rows,
     row: impl Fn(&Labelled, &Summary) -> String,
 ) -> Result<(Vec<Summary>, String)> {
     let mut stored = Sweep::open(out.join(format!("{}.csv", exp.name)), exp.columns);
@@ -396,6 +397,14 @@ fn rate(b: bool) -> f64 {
     f64::from(u8::from(b))
 }
 
+/// Runs a protocol with a progress bar over its control steps.
+fn with_progress(steps: usize, f: impl FnOnce(&dyn Fn(&StepReport)) -> Rows) -> Rows {
+    let (p, report) = progress_for(steps);
+    let rows = f(&|r| report(&p, r));
+    p.finish();
+    rows
+}
+
 pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     let common = match &cmd {
         EvalCommand::Survival { common, .. }
@@ -413,13 +422,6 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     let by_nfe = |nfe: &[usize]| nfe.iter().map(|&n| Point { nfe: n, scale: 0.0, seed }).collect::<Vec<_>>();
     let by_scale =
         |scales: &[f32], nfe: usize| scales.iter().map(|&w| Point { nfe, scale: w, seed }).collect::<Vec<_>>();
-    // Runs a protocol with a progress bar over its control steps.
-    let with_progress = |steps: usize, f: &mut dyn FnMut(&dyn Fn(&StepReport)) -> Result<Vec<Vec<f64>>>| {
-        let (p, report) = progress_for(steps);
-        let rows = f(&|r| report(&p, r));
-        p.finish();
-        rows
-    };
     match cmd {
         EvalCommand::Survival { nfe, seconds, .. } => {
             let trials = trials(50, 8);
@@ -438,11 +440,9 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 &exp,
                 out,
                 &models,
-                &by_nfe(&nfe),
-                trials,
-                true,
+                (&by_nfe(&nfe), trials, true),
                 |m, point| {
-                    with_progress(steps, &mut |report| {
+                    with_progress(steps, |report| {
                         let survived = protocols::survival(&m.bench(humanoid, &clip), point, trials, seconds, report)?;
                         Ok(survived.iter().map(|&s| vec![s as f64]).collect())
                     })
@@ -481,11 +481,9 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 &exp,
                 out,
                 &models,
-                &by_scale(&scales, nfe),
-                trials,
-                false,
+                (&by_scale(&scales, nfe), trials, false),
                 |m, point| {
-                    with_progress(360, &mut |report| {
+                    with_progress(360, |report| {
                         let r = protocols::joystick(&m.bench(humanoid, &clip), point, trials, report)?;
                         Ok(r.iter().map(|t| vec![t.velocity_rmse, t.yaw_rate_rmse, rate(t.fell)]).collect())
                     })
@@ -525,11 +523,9 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 &exp,
                 out,
                 &models,
-                &by_scale(&scales, nfe),
-                trials,
-                false,
+                (&by_scale(&scales, nfe), trials, false),
                 |m, point| {
-                    with_progress(120, &mut |report| {
+                    with_progress(120, |report| {
                         let r = protocols::reach(&m.bench(humanoid, &clip), point, trials, report)?;
                         Ok(r.iter().map(|t| vec![t.mean, t.rms, t.min, rate(t.fell)]).collect())
                     })
@@ -569,11 +565,9 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 &exp,
                 out,
                 &models,
-                &by_scale(&scales, nfe),
-                trials,
-                false,
+                (&by_scale(&scales, nfe), trials, false),
                 |m, point| {
-                    with_progress(300, &mut |report| {
+                    with_progress(300, |report| {
                         let r = protocols::compose(&m.bench(humanoid, &clip), point, trials, report)?;
                         Ok(r.iter().map(|t| vec![rate(t.success), t.pelvis_min, t.hand_min, rate(t.fell)]).collect())
                     })
@@ -622,11 +616,9 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 &exp,
                 out,
                 &models,
-                &by_nfe(&nfe),
-                1,
-                true,
+                (&by_nfe(&nfe), 1, true),
                 |m, point| {
-                    with_progress(steps, &mut |report| {
+                    with_progress(steps, |report| {
                         let f =
                             protocols::generated_features(&m.bench(humanoid, &clip), point, trials, seconds, report)?;
                         let (gm, gs) = gaussian(&f);
@@ -658,9 +650,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 &exp,
                 out,
                 &models,
-                &by_nfe(&nfe),
-                1,
-                true,
+                (&by_nfe(&nfe), 1, true),
                 |m, point| {
                     let (model_ms, physics_ms) = protocols::latency(&m.bench(humanoid, &clip), point, 3.0)?;
                     Ok(vec![vec![model_ms, physics_ms, model_ms + physics_ms]])

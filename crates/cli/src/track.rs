@@ -155,7 +155,7 @@ pub fn train(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, out: &Path, cfg: &Track
         if trainer.iteration % cfg.checkpoint_every.max(1) == 0 || last {
             trainer.save(&policy_path)?;
             log.save()?;
-            plot_curves(&out, &log.rows)?;
+            plot_curves(out, &log.rows)?;
         }
         let status = format!(
             "{:>9} steps  reward {:.3}  episode {:>5.1}  fails {:>3}/{:<3}  body err {:.3} m  kl {:.4}  lr {:.1e}  {:>5.0} steps/s",
