@@ -20,6 +20,7 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
         guidance_scale: scale,
         guidance_steps: None,
         seconds,
+        execute: 1,
         paced: false,
         seed: 0,
         kick_every: 0.0,

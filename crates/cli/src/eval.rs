@@ -35,6 +35,9 @@ pub struct Common {
     trials: Option<usize>,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Actions of each sampled trajectory executed before sampling again (1 = the paper).
+    #[arg(long, default_value_t = 1)]
+    execute: usize,
     /// Start trials from this clip's frames (default: the generated straight walk).
     #[arg(long)]
     clip: Option<PathBuf>,
@@ -43,7 +46,7 @@ pub struct Common {
 impl Common {
     /// Settings for a programmatic run (the pipeline): models as LABEL=DIR.
     pub fn new(models: Vec<String>, out: PathBuf, quick: bool) -> Self {
-        Self { models, out, quick, trials: None, seed: 0, clip: None }
+        Self { models, out, quick, trials: None, seed: 0, execute: 1, clip: None }
     }
 }
 
@@ -144,7 +147,7 @@ struct Sweep {
 }
 
 impl Sweep {
-    const KEY: &'static str = "model,objective,horizon,nfe,scale,seed,trial";
+    const KEY: &'static str = "model,objective,horizon,nfe,scale,execute,seed,trial";
 
     fn open(path: PathBuf, columns: &[&'static str]) -> Self {
         let mut rows: BTreeMap<String, Vec<Vec<f64>>> = BTreeMap::new();
@@ -154,9 +157,9 @@ impl Sweep {
         if lines.next() == Some(header.as_str()) {
             for line in lines {
                 let f: Vec<&str> = line.split(',').collect();
-                let values: Option<Vec<f64>> = f.get(7..).map(|v| v.iter().filter_map(|x| x.parse().ok()).collect());
+                let values: Option<Vec<f64>> = f.get(8..).map(|v| v.iter().filter_map(|x| x.parse().ok()).collect());
                 if let Some(v) = values.filter(|v| v.len() == columns.len()) {
-                    rows.entry(f[..6].join(",")).or_default().push(v);
+                    rows.entry(f[..7].join(",")).or_default().push(v);
                 }
             }
         }
@@ -165,7 +168,8 @@ impl Sweep {
 
     fn key(m: &Labelled, point: Point) -> String {
         let h = m.model.layout().spec.horizon;
-        format!("{},{},{h},{},{},{}", m.label, m.model.objective.name(), point.nfe, point.scale, point.seed)
+        let (nfe, w, k, seed) = (point.nfe, point.scale, point.execute, point.seed);
+        format!("{},{},{h},{nfe},{w},{k},{seed}", m.label, m.model.objective.name())
     }
 
     /// The point's rows: stored ones when complete, else computed by `run` and stored.
@@ -219,6 +223,7 @@ struct Summary {
     horizon: usize,
     nfe: usize,
     scale: f32,
+    execute: usize,
     seed: u64,
     trials: usize,
     mean: BTreeMap<String, f64>,
@@ -234,6 +239,7 @@ fn summary(m: &Labelled, point: Point, rows: &[Vec<f64>], columns: &[&str]) -> S
         horizon: m.model.layout().spec.horizon,
         nfe: point.nfe,
         scale: point.scale,
+        execute: point.execute,
         seed: point.seed,
         trials: rows.len(),
         mean: s.iter().map(|(k, v)| (k.clone(), v.0)).collect(),
@@ -419,9 +425,10 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     let out = &common.out;
     let seed = common.seed;
     let trials = |full: usize, quick: usize| common.trials.unwrap_or(if common.quick { quick } else { full }).max(1);
-    let by_nfe = |nfe: &[usize]| nfe.iter().map(|&n| Point { nfe: n, scale: 0.0, seed }).collect::<Vec<_>>();
-    let by_scale =
-        |scales: &[f32], nfe: usize| scales.iter().map(|&w| Point { nfe, scale: w, seed }).collect::<Vec<_>>();
+    let execute = common.execute;
+    let point = |nfe: usize, scale: f32| Point { nfe, scale, execute, seed };
+    let by_nfe = |nfe: &[usize]| nfe.iter().map(|&n| point(n, 0.0)).collect::<Vec<_>>();
+    let by_scale = |scales: &[f32], nfe: usize| scales.iter().map(|&w| point(nfe, w)).collect::<Vec<_>>();
     match cmd {
         EvalCommand::Survival { nfe, seconds, .. } => {
             let trials = trials(50, 8);

@@ -12,6 +12,7 @@ mod pipeline;
 mod progress;
 mod run;
 mod track;
+mod viz;
 
 use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
@@ -127,6 +128,17 @@ enum Command {
         #[arg(long, default_value_t = 15)]
         fps: usize,
     },
+    /// Play a clip or a rollout in the browser: serves a self-contained page on 127.0.0.1
+    /// (orbit camera, timeline, speed, trails, commanded vs achieved velocity). Ctrl-C stops it.
+    View {
+        file: PathBuf,
+        /// Which environment of a rollout.
+        #[arg(long, default_value_t = 0)]
+        env: usize,
+        /// Port on 127.0.0.1 (0: any free one).
+        #[arg(long, default_value_t = 8000)]
+        port: u16,
+    },
     /// The paper's experiments: survival, joystick, reach, compose, quality, latency. Each
     /// writes CSV, JSON and plots and appends to <out>/report.md.
     #[command(subcommand)]
@@ -206,29 +218,9 @@ fn run(cli: Cli) -> Result<()> {
         Command::Demo { model, out, nfe } => demo::run(&model, &out, nfe, &Humanoid::new(config.sim)?)?,
         Command::Pipeline { out, clip } => pipeline::run(&config, &cli.settings.preset, &out, &clip)?,
         Command::Render { file, out, env, width, height, fps } => {
-            let humanoid = Humanoid::new(config.sim)?;
-            let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-            let frames = if name.ends_with(".clip.safetensors") {
-                flowmimic_viz::Frames::from_clip(&flowmimic_motion::Clip::load(&humanoid, &file)?)
-            } else {
-                let rollout = flowmimic_control::Rollout::load(&file)?;
-                if env >= rollout.envs {
-                    anyhow::bail!("{}: --env {env}, but the rollout has {} environments", file.display(), rollout.envs);
-                }
-                flowmimic_viz::Frames::from_rollout(&rollout, env, &name)
-            };
-            let stem = name.trim_end_matches(".safetensors").to_string();
-            let out = out.unwrap_or_else(|| file.with_file_name(format!("{stem}.gif")));
-            let r = flowmimic_viz::render(&humanoid, &frames, &out, (width, height), fps)?;
-            let files: Vec<String> = r.files.iter().map(|f| f.display().to_string()).collect();
-            println!(
-                "rendered {} frames in {:.1} s ({:.0} ms per frame): {}",
-                r.frames,
-                r.seconds,
-                1e3 * r.seconds / r.frames as f64,
-                files.join(", ")
-            );
+            viz::render(&Humanoid::new(config.sim)?, &file, out, env, (width, height), fps)?
         }
+        Command::View { file, env, port } => viz::view(&Humanoid::new(config.sim)?, &file, env, port)?,
         Command::Eval(cmd) => eval::run(cmd, &Humanoid::new(config.sim)?)?,
         Command::Run(args) => run::run(args, &Humanoid::new(config.sim)?)?,
         Command::Train { dataset, objective, out, steps, resume } => {

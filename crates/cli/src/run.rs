@@ -53,6 +53,10 @@ pub struct RunArgs {
     pub guidance_interval: Option<String>,
     #[arg(long, default_value_t = 10.0)]
     pub seconds: f64,
+    /// Actions of each sampled trajectory to execute before sampling again (1 = the paper's
+    /// receding horizon, up to H + 1).
+    #[arg(long, default_value_t = 1)]
+    pub execute: usize,
     /// Environments run at once (one batched model call per step).
     #[arg(long, default_value_t = 1)]
     pub envs: usize,
@@ -143,6 +147,7 @@ impl RunArgs {
             guidance_scale: self.guidance_scale,
             guidance_steps,
             seconds: self.seconds,
+            execute: self.execute,
             paced: self.paced,
             seed: self.seed,
             kick_every: 0.0,

@@ -105,6 +105,7 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
         assert!(text.contains("libegl1"), "{text}");
         eprintln!("rendering not checked here: {text}");
     }
+    viewer_serves_and_draws(dir, "fm.rollout.safetensors");
     let (refused, text) = flowmimic(dir, &["render", "fm.rollout.safetensors", "--env", "5"]);
     assert!(!refused && text.contains("2 environments"), "{text}");
     // Evaluations write their raw trials, summary, plot and report, and reuse stored points.
@@ -162,4 +163,52 @@ fn the_pipeline_runs_every_stage_then_skips_what_is_done() {
     let (success, text) = flowmimic(&dir, &["pipeline", "-o", "p"]);
     assert!(!success && text.contains("expert 'walk_straight'") && text.contains("policy.safetensors"), "{text}");
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `flowmimic view` serves the page and the rollout; where Chromium is installed, a headless
+/// browser loads it, steps the timeline to frame 10 and takes a screenshot.
+fn viewer_serves_and_draws(dir: &Path, file: &str) {
+    use std::io::{BufRead, Read, Write};
+    let mut server = Command::new(env!("CARGO_BIN_EXE_flowmimic"))
+        .current_dir(dir)
+        .args(["--preset", "tiny", "view", file, "--port", "0"])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(server.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let url = line.split_whitespace().nth(1).expect("the viewer prints its address").to_string();
+    let host = url.trim_start_matches("http://").trim_end_matches('/').to_string();
+    let mut stream = std::net::TcpStream::connect(&host).unwrap();
+    write!(stream, "GET /data.json HTTP/1.1\r\nHost: {host}\r\n\r\n").unwrap();
+    let mut reply = String::new();
+    stream.read_to_string(&mut reply).unwrap();
+    assert!(
+        reply.starts_with("HTTP/1.1 200") && reply.contains("\"bodies\"") && reply.contains("\"R_Hand\""),
+        "{reply:.300}"
+    );
+    let shot = dir.join("viewer.png");
+    let browser = ["chromium", "chromium-browser", "google-chrome"]
+        .into_iter()
+        .find(|b| Command::new(b).arg("--version").output().is_ok_and(|o| o.status.success()));
+    match browser {
+        Some(b) => {
+            let out = Command::new(b)
+                .args([
+                    "--headless",
+                    "--no-sandbox",
+                    "--disable-gpu",
+                    "--window-size=800,600",
+                    "--virtual-time-budget=3000",
+                ])
+                .arg(format!("--screenshot={}", shot.display()))
+                .arg(format!("{url}?frame=10"))
+                .output()
+                .unwrap();
+            let png = std::fs::read(&shot).unwrap_or_default();
+            assert!(png.len() > 20_000, "screenshot of {} bytes: {}", png.len(), String::from_utf8_lossy(&out.stderr));
+        }
+        None => eprintln!("no Chromium here: the viewer page was served but not drawn"),
+    }
+    server.kill().unwrap();
 }

@@ -27,6 +27,9 @@ pub struct ControlConfig {
     /// paper guides 15 of 20).
     pub guidance_steps: Option<(usize, usize)>,
     pub seconds: f64,
+    /// Actions of each sampled trajectory executed before sampling again (1: the paper's
+    /// receding horizon; up to H + 1).
+    pub execute: usize,
     /// Sleep so that steps happen at 30 Hz of wall-clock time.
     pub paced: bool,
     pub seed: u64,
@@ -158,37 +161,51 @@ pub fn run(
     let mut rng = StdRng::seed_from_u64(config.seed);
     let mut alive: Vec<usize> = (0..envs_n).collect();
     let (g0, g1) = config.guidance_steps();
+    // Each environment's current plan and how many of its actions have been executed.
+    let every = config.execute.clamp(1, horizon + 1);
+    let mut plans: Vec<Option<(Vec<f32>, usize)>> = vec![None; envs_n];
     let started = Instant::now();
     for step in 0..steps {
         let time = step as f64 / CONTROL_HZ;
         let t_model = Instant::now();
-        let mut cond = Vec::with_capacity(alive.len() * layout.cond_len());
-        let mut costs: Vec<Option<crate::Sum>> = Vec::with_capacity(alive.len());
-        for &e in &alive {
+        // Environments whose plan is used up sample a new one, all in one batched call.
+        let replan: Vec<usize> =
+            alive.iter().copied().filter(|&e| plans[e].as_ref().is_none_or(|p| p.1 >= every)).collect();
+        let mut cond = Vec::with_capacity(replan.len() * layout.cond_len());
+        let mut costs: Vec<Option<crate::Sum>> = Vec::with_capacity(replan.len());
+        for &e in &replan {
             let (states, actions) = histories[e].conditioning();
             cond.extend(layout.interleave(&states, &actions));
             let b = envs[e].bodies();
             costs.push(tasks[e].cost(traj, time, &CharFrame::from_root(b.pos[0], b.rot[0]))?);
         }
         let len = traj.len();
-        let grad = |x: &[f32], n: usize| -> Vec<f32> {
-            let mut g = vec![0.0; n * len];
-            for (i, cost) in costs.iter().enumerate().take(n) {
-                if let Some(c) = cost {
-                    c.add_grad(&x[i * len..(i + 1) * len], &mut g[i * len..(i + 1) * len]);
+        if !replan.is_empty() {
+            let grad = |x: &[f32], n: usize| -> Vec<f32> {
+                let mut g = vec![0.0; n * len];
+                for (i, cost) in costs.iter().enumerate().take(n) {
+                    if let Some(c) = cost {
+                        c.add_grad(&x[i * len..(i + 1) * len], &mut g[i * len..(i + 1) * len]);
+                    }
                 }
+                g
+            };
+            let guided = config.guidance_scale > 0.0 && costs.iter().any(Option::is_some);
+            let guidance = guided.then_some(TaskGuidance { weight: config.guidance_scale, grad: &grad, steps: g0..g1 });
+            let futures = model.sample(&cond, replan.len(), config.nfe, guidance.as_ref(), &mut rng);
+            for (i, &e) in replan.iter().enumerate() {
+                plans[e] = Some((futures[i * len..(i + 1) * len].to_vec(), 0));
             }
-            g
-        };
-        let guided = config.guidance_scale > 0.0 && costs.iter().any(Option::is_some);
-        let guidance = guided.then_some(TaskGuidance { weight: config.guidance_scale, grad: &grad, steps: g0..g1 });
-        let futures = model.sample(&cond, alive.len(), config.nfe, guidance.as_ref(), &mut rng);
+        }
         let model_ms = t_model.elapsed().as_secs_f32() * 1e3;
 
         let t_physics = Instant::now();
         let mut actions: Vec<Vec<f32>> = Vec::with_capacity(alive.len());
-        for (i, &e) in alive.iter().enumerate() {
-            let a: Vec<f32> = futures[i * len..i * len + NUM_DOFS].iter().map(|a| a.clamp(-1.0, 1.0)).collect();
+        for &e in &alive {
+            let (plan, used) = plans[e].as_mut().expect("planned above");
+            let at = traj.action(*used);
+            *used += 1;
+            let a: Vec<f32> = plan[at..at + NUM_DOFS].iter().map(|a| a.clamp(-1.0, 1.0)).collect();
             if let Some(j) = a.iter().position(|a| !a.is_finite()) {
                 return Err(ControlError::NonFinite { env: e, step, index: j });
             }

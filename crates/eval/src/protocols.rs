@@ -27,6 +27,8 @@ pub struct Bench<'a> {
 pub struct Point {
     pub nfe: usize,
     pub scale: f32,
+    /// Actions executed per sampled trajectory.
+    pub execute: usize,
     pub seed: u64,
 }
 
@@ -44,6 +46,7 @@ impl Bench<'_> {
             guidance_scale: point.scale,
             guidance_steps: None,
             seconds,
+            execute: point.execute,
             paced: false,
             seed: point.seed,
             kick_every: if kicks { 1.0 } else { 0.0 },

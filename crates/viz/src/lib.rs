@@ -2,7 +2,9 @@
 //! into an animated GIF (no system dependency), an MP4 (through `ffmpeg` when installed) and a
 //! contact sheet PNG of key frames. The camera follows the pelvis; a rollout's guidance shows as
 //! markers: the hand target (red sphere), the waypoint (green) and the commanded velocity
-//! (blue arrow at the feet).
+//! (blue arrow at the feet). [`viewer`] serves the same files to a browser.
+
+pub mod viewer;
 
 use flowmimic_control::Rollout;
 use flowmimic_geom::{heading, quat_from_wxyz};
@@ -22,6 +24,8 @@ pub enum VizError {
     File(#[from] flowmimic_io::FileError),
     #[error("{path}: {message}")]
     Output { path: PathBuf, message: String },
+    #[error("viewer: {0}")]
+    Serve(String),
 }
 
 /// A sequence of poses at 30 Hz with their markers.
