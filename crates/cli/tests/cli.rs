@@ -211,4 +211,5 @@ fn viewer_serves_and_draws(dir: &Path, file: &str) {
         None => eprintln!("no Chromium here: the viewer page was served but not drawn"),
     }
     server.kill().unwrap();
+    server.wait().unwrap();
 }
