@@ -50,6 +50,8 @@ pub struct TrainConfig {
     pub fm_solver: fm::Solver,
     /// DDPM's training steps T.
     pub ddpm_steps: usize,
+    /// What DDPM's network predicts: `sample` (x_0) or `epsilon`.
+    pub ddpm_prediction: ddpm::Prediction,
     /// DDPM's clip of clean predictions (in standard deviations of the data).
     pub ddpm_clip: f32,
     /// Share of rollouts held out for validation.
@@ -73,6 +75,7 @@ impl Default for TrainConfig {
             fm_time: fm::TimeDistribution::Uniform,
             fm_solver: fm::Solver::Euler,
             ddpm_steps: 100,
+            ddpm_prediction: ddpm::Prediction::Sample,
             ddpm_clip: 6.0,
             validation_fraction: 0.05,
             validation_windows: 1024,
@@ -87,7 +90,9 @@ impl TrainConfig {
     pub fn objective(&self, name: &str) -> Result<Objective, ModelError> {
         match name {
             "fm" => Ok(Objective::Fm { time: self.fm_time, solver: self.fm_solver }),
-            "ddpm" => Ok(Objective::Ddpm { steps: self.ddpm_steps, clip: self.ddpm_clip }),
+            "ddpm" => {
+                Ok(Objective::Ddpm { steps: self.ddpm_steps, prediction: self.ddpm_prediction, clip: self.ddpm_clip })
+            }
             other => Err(ModelError::Invalid(format!("unknown objective '{other}'; choose fm or ddpm"))),
         }
     }
@@ -260,7 +265,9 @@ impl Trainer {
         let dim = self.model.layout().future_len();
         match self.model.objective {
             Objective::Fm { time, .. } => fm::training_batch(clean, dim, time, rng),
-            Objective::Ddpm { steps, .. } => ddpm::training_batch(&ddpm::Schedule::cosine(steps), clean, dim, rng),
+            Objective::Ddpm { steps, prediction, .. } => {
+                ddpm::training_batch(&ddpm::Schedule::cosine(steps), prediction, clean, dim, rng)
+            }
         }
     }
 

@@ -107,9 +107,9 @@ impl ModelConfig {
 pub enum Objective {
     /// Flow Matching: velocity regression, Euler ODE sampler (or Heun).
     Fm { time: fm::TimeDistribution, solver: Solver },
-    /// DDPM: epsilon prediction on a cosine schedule of `steps`, ancestral sampling respaced
-    /// to the NFE; clean predictions clipped to `clip` standard deviations.
-    Ddpm { steps: usize, clip: f32 },
+    /// DDPM on a cosine schedule of `steps` predicting `prediction`, ancestral sampling
+    /// respaced to the NFE; clean predictions clipped to `clip` standard deviations.
+    Ddpm { steps: usize, prediction: ddpm::Prediction, clip: f32 },
 }
 
 impl Objective {
@@ -235,9 +235,9 @@ impl TrajectoryModel {
         let noise: Vec<f32> = (0..n * f).map(|_| StandardNormal.sample(rng)).collect();
         let mut x = match self.objective {
             Objective::Fm { solver, .. } => fm::sample(&self.net, &cond, noise, n, nfe, solver, inner.as_ref()),
-            Objective::Ddpm { steps, clip } => {
+            Objective::Ddpm { steps, prediction, clip } => {
                 let schedule = ddpm::Schedule::cosine(steps);
-                ddpm::sample(&self.net, &schedule, &cond, noise, n, nfe, clip, inner.as_ref(), rng)
+                ddpm::sample(&self.net, &schedule, prediction, &cond, noise, n, nfe, clip, inner.as_ref(), rng)
             }
         };
         self.norm.denormalise(&mut x, c, f);
