@@ -35,7 +35,7 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
 
     // 1. Joystick: forward, backward, turn left, turn right, 3 s each.
     let task = Task::joystick_eval();
-    let r = flowmimic_control::run(&model, humanoid, &clip, vec![task], &control(12.0, 30.0), &name, |_| {})?;
+    let r = flowmimic_control::run(&model, humanoid, &clip, vec![task], &control(12.0, 2.0), &name, |_| {})?;
     r.save(&out.join("joystick.rollout.safetensors"))?;
     let t = joystick_trial(&r, 0);
     let time = |k: usize| k as f64 / CONTROL_HZ;
@@ -45,7 +45,7 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
         .series(Series::line("achieved", series(&|k| f64::from(r.state(0, k + 1)[offset::ROOT_VEL]))))
         .save(&out.join("joystick_velocity"))?;
     println!(
-        "joystick (forward, backward, turn left, turn right; w 30): velocity RMSE {:.2} m/s, yaw-rate RMSE {:.2} rad/s, {}",
+        "joystick (forward, backward, turn left, turn right; w 2): velocity RMSE {:.2} m/s, yaw-rate RMSE {:.2} rad/s, {}",
         t.velocity_rmse,
         t.yaw_rate_rmse,
         fell(&r)
@@ -56,7 +56,7 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
     let start = &clip.qpos[flowmimic_control::controller::start_frame(clip.len(), model.layout().spec.history, 0)];
     let target = [start[0] + 2.0, start[1] - 0.3, 1.2];
     let task = Task { joystick: vec![walk], reach: Some((Hand::Right, target)), ..Task::walk() };
-    let r = flowmimic_control::run(&model, humanoid, &clip, vec![task], &control(5.0, 60.0), &name, |_| {})?;
+    let r = flowmimic_control::run(&model, humanoid, &clip, vec![task], &control(5.0, 20.0), &name, |_| {})?;
     r.save(&out.join("reach.rollout.safetensors"))?;
     let distance = |k: usize| {
         let h = r.body(0, k, body::R_HAND);
@@ -67,7 +67,7 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
     Chart::new("reach while walking: right hand to target", "seconds", "metres")
         .series(Series::line("distance", d))
         .save(&out.join("reach_distance"))?;
-    println!("reach while walking (w 60): closest hand-target distance {closest:.2} m, {}", fell(&r));
+    println!("reach while walking (w 20): closest hand-target distance {closest:.2} m, {}", fell(&r));
     let median = |v: &[f32]| {
         let mut v = v.to_vec();
         v.sort_by(f32::total_cmp);

@@ -45,8 +45,8 @@ pub struct RunArgs {
     /// Network evaluations per control step.
     #[arg(long, default_value_t = 5)]
     pub nfe: usize,
-    /// Guidance scale w (v' = v - w grad G); 0 for none.
-    #[arg(long, default_value_t = 30.0)]
+    /// Guidance scale w (v' = v - w grad G) on z-scored features; 0 for none.
+    #[arg(long, default_value_t = 2.0)]
     pub guidance_scale: f32,
     /// Solver steps that apply guidance, `start:end` (default: all but the last quarter).
     #[arg(long)]

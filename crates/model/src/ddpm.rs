@@ -66,6 +66,13 @@ pub enum Prediction {
     Sample,
 }
 
+impl Prediction {
+    /// The default of model files that do not say.
+    pub fn epsilon() -> Self {
+        Prediction::Epsilon
+    }
+}
+
 /// A training batch: `k ~ U{1..T}`, noise level `t = k / T`, target `eps` or `x_0`.
 pub fn training_batch(
     schedule: &Schedule,

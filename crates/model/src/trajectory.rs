@@ -109,7 +109,13 @@ pub enum Objective {
     Fm { time: fm::TimeDistribution, solver: Solver },
     /// DDPM on a cosine schedule of `steps` predicting `prediction`, ancestral sampling
     /// respaced to the NFE; clean predictions clipped to `clip` standard deviations.
-    Ddpm { steps: usize, prediction: ddpm::Prediction, clip: f32 },
+    Ddpm {
+        steps: usize,
+        /// Files written before the choice existed predicted epsilon.
+        #[serde(default = "ddpm::Prediction::epsilon")]
+        prediction: ddpm::Prediction,
+        clip: f32,
+    },
 }
 
 impl Objective {
