@@ -68,20 +68,12 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
         .series(Series::line("distance", d))
         .save(&out.join("reach_distance"))?;
     println!("reach while walking (w 20): closest hand-target distance {closest:.2} m, {}", fell(&r));
-    let median = |v: &[f32]| {
-        let mut v = v.to_vec();
-        v.sort_by(f32::total_cmp);
-        v[v.len() / 2]
-    };
-    println!("per control step (median): model {:.1} ms, physics {:.1} ms", median(&r.model_ms), median(&r.physics_ms));
+    let (model_ms, physics_ms) = r.median_ms();
+    println!("per control step (median): model {model_ms:.1} ms, physics {physics_ms:.1} ms");
     eprintln!("wrote rollouts and joystick_velocity/reach_distance .png/.svg in {}", out.display());
     Ok(())
 }
 
 fn fell(r: &Rollout) -> String {
-    if r.survived[0] < r.steps {
-        format!("fell after {:.1} s", r.survived[0] as f64 / CONTROL_HZ)
-    } else {
-        "no fall".into()
-    }
+    if r.fell(0) { format!("fell after {:.1} s", r.survived[0] as f64 / CONTROL_HZ) } else { "no fall".into() }
 }

@@ -127,7 +127,7 @@ impl Labelled {
 }
 
 fn load_models(specs: &[String]) -> Result<Vec<Labelled>> {
-    let defaults = ["fm=runs/model/fm".to_string(), "ddpm=runs/model/ddpm".to_string()];
+    let defaults = ["fm", "ddpm"].map(|o| format!("{o}={}", crate::model::default_out(o).display()));
     let specs = if specs.is_empty() { &defaults[..] } else { specs };
     specs
         .iter()

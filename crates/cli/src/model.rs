@@ -50,7 +50,12 @@ pub fn train(
         layout.spec.horizon,
         started.elapsed().as_secs_f64()
     );
-    let fresh = Trainer::new(layout, model, objective, cfg.clone(), stats, data, dataset.shards_key());
+    let fresh = Trainer::new(
+        TrajectoryModel::new(layout, model, objective, stats, cfg.seed),
+        cfg.clone(),
+        data,
+        dataset.shards_key(),
+    );
     let mut trainer = if resume {
         let t = Trainer::resume(out, fresh)?;
         eprintln!("resumed {} at step {}", out.join(CHECKPOINT_FILE).display(), t.step);
@@ -107,7 +112,8 @@ pub fn train(
         }
     }
     progress.finish();
-    if trainer.step == cfg.steps && !out.join(MODEL_FILE).exists() {
+    // Nothing to train (`--steps` already reached, or 0): the model directory is still complete.
+    if !out.join(MODEL_FILE).exists() {
         trainer.save(out)?;
     }
     eprintln!("wrote {} (weights, stats, checkpoint, log.csv, loss.png)", out.display());
@@ -180,6 +186,5 @@ fn untrained(config: &ModelConfig, layout: &TokenLayout, objective: flowmimic_mo
         action_std: vec![1.0; spec.actions() * NUM_DOFS],
         windows: 0,
     };
-    let data = WindowSet { layout: *layout, train: vec![0.0; layout.window_len()], validation: Vec::new() };
-    Trainer::new(*layout, *config, objective, TrainConfig::default(), stats, data, String::new()).model
+    TrajectoryModel::new(*layout, *config, objective, stats, 0)
 }

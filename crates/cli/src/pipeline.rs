@@ -8,7 +8,7 @@
 use crate::config::Config;
 use crate::eval::{self, Common, EvalCommand};
 use anyhow::{Context, Result};
-use flowmimic_motion::{Clip, GaitParams};
+use flowmimic_motion::Clip;
 use flowmimic_sim::Humanoid;
 use sha2::{Digest, Sha256};
 use std::path::{Path, PathBuf};
@@ -54,17 +54,9 @@ fn stage(name: &str, dir: &Path, key: String, work: impl FnOnce() -> Result<()>)
 
 /// The clips the pipeline trains on: the given files, or the generated 10 s straight walk.
 fn clips(humanoid: &Arc<Humanoid>, files: &[PathBuf], dir: &Path) -> Result<Vec<PathBuf>> {
-    if files.is_empty() {
-        let walk = GaitParams { duration: 10.0, ..Default::default() };
-        let (clip, _) = flowmimic_motion::generate(humanoid, "walk_straight", &walk)?;
-        let path = dir.join("walk_straight.clip.safetensors");
-        clip.save(&path)?;
-        return Ok(vec![path]);
-    }
-    files
+    crate::track::load_clips(humanoid, files)?
         .iter()
-        .map(|f| {
-            let clip = Clip::load(humanoid, f)?;
+        .map(|clip| {
             let path = dir.join(format!("{}.clip.safetensors", clip.name));
             clip.save(&path)?;
             Ok(path)

@@ -4,7 +4,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use flowmimic_control::{ControlConfig, Hand, JoystickSegment, Rollout, StepReport, Task};
 use flowmimic_model::TrajectoryModel;
-use flowmimic_motion::{Clip, GaitParams};
+use flowmimic_motion::Clip;
 use flowmimic_sim::Humanoid;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -168,10 +168,7 @@ pub fn load_model(dir: &Path) -> Result<TrajectoryModel> {
 pub fn start_clip(humanoid: &Arc<Humanoid>, file: Option<&Path>) -> Result<Clip> {
     Ok(match file {
         Some(f) => Clip::load(humanoid, f)?,
-        None => {
-            flowmimic_motion::generate(humanoid, "walk_straight", &GaitParams { duration: 10.0, ..Default::default() })?
-                .0
-        }
+        None => flowmimic_motion::straight_walk(humanoid)?,
     })
 }
 
@@ -222,13 +219,8 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
 
 /// Falls and timing medians of a rollout.
 fn summarise(r: &Rollout) {
-    let fell = r.survived.iter().filter(|&&s| s < r.steps).count();
-    let median = |v: &[f32]| {
-        let mut v: Vec<f32> = v.iter().copied().filter(|x| *x > 0.0).collect();
-        v.sort_by(f32::total_cmp);
-        v.get(v.len() / 2).copied().unwrap_or(0.0)
-    };
-    let (m, p) = (median(&r.model_ms), median(&r.physics_ms));
+    let fell = (0..r.envs).filter(|&e| r.fell(e)).count();
+    let (m, p) = r.median_ms();
     println!(
         "{} of {} environments fell; per control step (median, whole batch): model {m:.1} ms, physics {p:.1} ms, \
          {:.0} Hz achievable ({})",

@@ -3,7 +3,7 @@
 use crate::progress::{CsvLog, Progress};
 use anyhow::{Context, Result};
 use clap::Subcommand;
-use flowmimic_motion::{Clip, GaitParams};
+use flowmimic_motion::Clip;
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::Humanoid;
 use flowmimic_track::train::{Checkpoint, IterationLog};
@@ -80,10 +80,9 @@ fn plot_curves(out: &Path, rows: &[String]) -> Result<()> {
 }
 
 /// The clips a run tracks: files, or the default generated 10 s straight walk.
-fn load_clips(humanoid: &Arc<Humanoid>, files: &[PathBuf]) -> Result<Vec<Clip>> {
+pub(crate) fn load_clips(humanoid: &Arc<Humanoid>, files: &[PathBuf]) -> Result<Vec<Clip>> {
     if files.is_empty() {
-        let walk = GaitParams { duration: 10.0, ..Default::default() };
-        return Ok(vec![flowmimic_motion::generate(humanoid, "walk_straight", &walk)?.0]);
+        return Ok(vec![flowmimic_motion::straight_walk(humanoid)?]);
     }
     files.iter().map(|f| Ok(Clip::load(humanoid, f)?)).collect()
 }

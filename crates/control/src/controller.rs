@@ -215,13 +215,13 @@ pub fn run(
             out.command[(e * steps + step) * COMMAND_DIM..(e * steps + step + 1) * COMMAND_DIM].copy_from_slice(&c);
             actions.push(a);
         }
+        let kick_due = config.kick_every > 0.0
+            && step > 0
+            && step.is_multiple_of(((config.kick_every * CONTROL_HZ).round() as usize).max(1));
         let kicks: Vec<Option<[f64; 2]>> = alive
             .iter()
             .map(|_| {
-                let due = config.kick_every > 0.0
-                    && step > 0
-                    && step % ((config.kick_every * CONTROL_HZ).round() as usize).max(1) == 0;
-                due.then(|| {
+                kick_due.then(|| {
                     let (angle, speed) =
                         (rng.random::<f64>() * std::f64::consts::TAU, rng.random::<f64>() * config.kick_max);
                     [speed * angle.cos(), speed * angle.sin()]

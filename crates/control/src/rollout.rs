@@ -80,6 +80,22 @@ impl Rollout {
         &self.command[at..at + COMMAND_DIM]
     }
 
+    /// Whether environment `e` fell before the end.
+    pub fn fell(&self, e: usize) -> bool {
+        self.survived[e] < self.steps
+    }
+
+    /// Median milliseconds per control step of the model and of the physics, over the steps
+    /// taken (the padding after everyone fell excluded); NaN when none was.
+    pub fn median_ms(&self) -> (f32, f32) {
+        let median = |v: &[f32]| {
+            let mut v: Vec<f32> = v.iter().copied().filter(|x| *x > 0.0).collect();
+            v.sort_by(f32::total_cmp);
+            v.get(v.len() / 2).copied().unwrap_or(f32::NAN)
+        };
+        (median(&self.model_ms), median(&self.physics_ms))
+    }
+
     /// Copies environment `e`'s row `k` to row `k + 1` (a fallen environment stays put).
     pub fn repeat_row(&mut self, e: usize, k: usize) {
         let (from, to) = (e * (self.steps + 1) + k, e * (self.steps + 1) + k + 1);

@@ -123,7 +123,7 @@ pub fn joystick_trial(r: &Rollout, e: usize) -> JoystickTrial {
     JoystickTrial {
         velocity_rmse: velocity_rmse(&cmd, &got),
         yaw_rate_rmse: (yaw_err / steps.max(1) as f64).sqrt(),
-        fell: steps < r.steps,
+        fell: r.fell(e),
     }
 }
 
@@ -159,7 +159,7 @@ pub fn reach(
             let hands: Vec<[f64; 3]> = (1..=r.survived[e]).map(|k| r.body(e, k, body::R_HAND)).collect();
             let (mean, rms) = reach_errors(&hands, &vec![target; hands.len()]);
             let min = hands.iter().map(|h| distance(h, &target)).fold(f64::INFINITY, f64::min);
-            ReachTrial { mean, rms, min, fell: r.survived[e] < r.steps }
+            ReachTrial { mean, rms, min, fell: r.fell(e) }
         })
         .collect())
 }
@@ -209,7 +209,7 @@ pub fn compose(
                 hand_min = hand_min.min(d_hand);
                 success |= composition_success(d_pelvis, d_hand);
             }
-            ComposeTrial { pelvis_min, hand_min, success, fell: r.survived[e] < r.steps }
+            ComposeTrial { pelvis_min, hand_min, success, fell: r.fell(e) }
         })
         .collect())
 }
@@ -244,10 +244,6 @@ pub fn generated_features(
 /// Median model and physics milliseconds per control step, one environment walking unguided.
 pub fn latency(bench: &Bench, point: Point, seconds: f64) -> Result<(f64, f64), ControlError> {
     let r = bench.run(vec![Task::walk()], point, seconds, false, |_| {})?;
-    let median = |v: &[f32]| {
-        let mut v: Vec<f64> = v.iter().map(|&x| f64::from(x)).filter(|x| *x > 0.0).collect();
-        v.sort_by(f64::total_cmp);
-        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-    };
-    Ok((median(&r.model_ms), median(&r.physics_ms)))
+    let (model_ms, physics_ms) = r.median_ms();
+    Ok((f64::from(model_ms), f64::from(physics_ms)))
 }

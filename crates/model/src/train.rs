@@ -11,11 +11,11 @@
 //! Both objectives share everything here (network, optimiser, data, batches, budget); only the
 //! training batch's noise and target differ.
 
-use crate::trajectory::{Normaliser, Objective, TokenLayout, TrajectoryModel, TrajectoryNet};
+use crate::trajectory::{Normaliser, Objective, TokenLayout, TrajectoryModel};
 use crate::{ModelConfig, TrainingBatch, ddpm, fm};
 use flowmimic_data::{DataError, Dataset, Stats, window, window_starts};
 use flowmimic_io::tensors::{self, TensorError, TensorFile};
-use flowmimic_nn::{Adam, Transformer};
+use flowmimic_nn::Adam;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
@@ -183,21 +183,10 @@ struct ModelMeta {
 }
 
 impl Trainer {
-    /// A fresh model for `dataset`, with the layout of its states and actions.
-    pub fn new(
-        layout: TokenLayout,
-        config: ModelConfig,
-        objective: Objective,
-        train: TrainConfig,
-        stats: Stats,
-        data: WindowSet,
-        dataset_key: String,
-    ) -> Self {
-        let mut rng = StdRng::seed_from_u64(train.seed);
-        let net = Transformer::new(config.transformer(&layout), &mut rng);
-        let adam = Adam::new(net.num_params());
-        let norm = Normaliser::new(&layout, &stats);
-        let model = TrajectoryModel { config, objective, net: TrajectoryNet { layout, net }, stats, norm };
+    /// Training of `model` (fresh: [`TrajectoryModel::new`]) on the windows of the dataset
+    /// whose shard checksums are `dataset_key`.
+    pub fn new(model: TrajectoryModel, train: TrainConfig, data: WindowSet, dataset_key: String) -> Self {
+        let adam = Adam::new(model.net.net.num_params());
         Self { model, config: train, adam, step: 0, dataset_key, data }
     }
 
@@ -372,8 +361,8 @@ impl TrajectoryModel {
                 meta.layout.spec
             )));
         }
-        let mut rng = StdRng::seed_from_u64(0);
-        let mut net = Transformer::new(meta.config.transformer(&meta.layout), &mut rng);
+        let mut model = Self::new(meta.layout, meta.config, meta.objective, stats, 0);
+        let net = &mut model.net.net;
         for slot in net.tensors().to_vec() {
             let values = file.f32(&slot.name, &slot.shape)?;
             net.params[slot.at..slot.at + slot.len()].copy_from_slice(&values);
@@ -381,14 +370,7 @@ impl TrajectoryModel {
         if net.params.iter().any(|p| !p.is_finite()) {
             return Err(file.error("weights contain NaN or infinity").into());
         }
-        let norm = Normaliser::new(&meta.layout, &stats);
-        Ok(Self {
-            config: meta.config,
-            objective: meta.objective,
-            net: TrajectoryNet { layout: meta.layout, net },
-            stats,
-            norm,
-        })
+        Ok(model)
     }
 
     /// Refuses a model whose state, action or window sizes differ from `layout`'s.

@@ -12,7 +12,8 @@ use crate::fm::{self, Solver};
 use crate::{Guidance, Network, ddpm};
 use flowmimic_data::{Stats, WindowSpec};
 use flowmimic_nn::{Transformer, TransformerConfig};
-use rand::Rng;
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
@@ -212,6 +213,13 @@ pub struct TaskGuidance<'a> {
 }
 
 impl TrajectoryModel {
+    /// A freshly initialised model (weights drawn from `seed`) normalising with `stats`.
+    pub fn new(layout: TokenLayout, config: ModelConfig, objective: Objective, stats: Stats, seed: u64) -> Self {
+        let net = Transformer::new(config.transformer(&layout), &mut StdRng::seed_from_u64(seed));
+        let norm = Normaliser::new(&layout, &stats);
+        Self { config, objective, net: TrajectoryNet { layout, net }, stats, norm }
+    }
+
     pub fn layout(&self) -> &TokenLayout {
         &self.net.layout
     }

@@ -1,7 +1,7 @@
 //! The trajectory model's plumbing: token layout, normalisation, and guidance in physical units.
 
 use flowmimic_data::{Stats, WindowSpec};
-use flowmimic_model::{ModelConfig, TaskGuidance, TokenLayout, TrainConfig, Trainer, WindowSet};
+use flowmimic_model::{ModelConfig, TaskGuidance, TokenLayout, TrainConfig, TrajectoryModel};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
@@ -37,10 +37,8 @@ fn guidance_acts_in_physical_units() {
         windows: 1,
     };
     let config = ModelConfig { history: 1, horizon: 2, d_model: 8, heads: 2, layers: 1, d_ff: 16, time_features: 4 };
-    let train = TrainConfig::default();
-    let data = WindowSet { layout: l, train: vec![0.0; l.window_len()], validation: Vec::new() };
-    let objective = train.objective("fm").unwrap();
-    let model = Trainer::new(l, config, objective, train, stats, data, String::new()).model;
+    let objective = TrainConfig::default().objective("fm").unwrap();
+    let model = TrajectoryModel::new(l, config, objective, stats, 0);
     let cond = vec![10.0f32; 4 * l.cond_len()];
     let unguided = model.sample(&cond, 4, 10, None, &mut StdRng::seed_from_u64(1));
     // An untrained model predicts about zero velocity: samples stay near the mean (10 for

@@ -266,6 +266,13 @@ pub fn generate(humanoid: &Arc<Humanoid>, name: &str, p: &GaitParams) -> Result<
     retarget(humanoid, &landmarks(p)?, name, &format!("generator {source}"), false)
 }
 
+/// The generated 10 s straight walk at 1 m/s, `walk_straight`: every stage's default clip
+/// (the shipped expert tracks it).
+pub fn straight_walk(humanoid: &Arc<Humanoid>) -> Result<Clip, MotionError> {
+    let walk = GaitParams { duration: 10.0, ..Default::default() };
+    Ok(generate(humanoid, "walk_straight", &walk)?.0)
+}
+
 /// `count` diverse walks from `seed` (the same seed gives the same set).
 pub fn sample_set(count: usize, seed: u64, duration: f64) -> Vec<GaitParams> {
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);

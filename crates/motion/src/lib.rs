@@ -11,7 +11,7 @@ pub mod landmarks;
 pub mod retarget;
 
 pub use clip::{Clip, Quality};
-pub use generator::{GaitParams, generate};
+pub use generator::{GaitParams, generate, straight_walk};
 
 pub use landmarks::{Units, UpAxis};
 pub use retarget::RetargetReport;

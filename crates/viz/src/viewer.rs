@@ -78,7 +78,7 @@ impl ViewData {
             commands,
             reach: task.reach.is_some(),
             waypoint: task.waypoint.is_some(),
-            fell: (r.survived[env] < r.steps).then_some(r.survived[env]),
+            fell: r.fell(env).then_some(r.survived[env]),
         }
     }
 }
