@@ -119,7 +119,7 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
     let shards = dataset.load_all()?;
     println!("{:<20} {:>6} {:>9} {:>8}", "clip", "sigma", "steps", "hours");
     let mut per_sigma: BTreeMap<String, (usize, usize, usize)> = BTreeMap::new();
-    let (mut speeds, mut hands) = (Vec::new(), Vec::new());
+    let (mut speeds, mut hands, mut walking) = (Vec::new(), Vec::new(), Vec::new());
     let (mut s_lo, mut s_hi) = (vec![f32::MAX; STATE_DIM], vec![f32::MIN; STATE_DIM]);
     let (mut a_lo, mut a_hi) = (f32::MAX, f32::MIN);
     for (info, shard) in &shards {
@@ -150,6 +150,7 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
             a_lo = a_lo.min(a);
             a_hi = a_hi.max(a);
         }
+        walking.extend(walking_velocities(shard));
     }
     println!("\n{:>6} {:>9} {:>6} {:>10}", "sigma", "episodes", "falls", "fall rate");
     for (sigma, (episodes, falls, _)) in &per_sigma {
@@ -175,5 +176,21 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
         .series(Series::line("hands", histogram(&hands, 0.0, 2.0, 40)))
         .save(&dir.join("coverage_hand_height"))?;
     println!("\nwrote coverage_root_speed and coverage_hand_height (.png, .svg) in {}", dir.display());
-    Ok(())
+    crate::motion::print_coverage(&flowmimic_motion::Coverage::of(walking), &dir)
+}
+
+/// Walking velocities of every step of a shard, each episode's root path measured on its own.
+fn walking_velocities(shard: &flowmimic_data::Shard) -> Vec<[f64; 3]> {
+    let mut out = Vec::with_capacity(shard.steps());
+    let mut path: Vec<[f64; 3]> = Vec::new();
+    for k in 0..shard.steps() {
+        let p = &shard.root_pose[3 * k..3 * k + 3];
+        path.push([f64::from(p[0]), f64::from(p[1]), f64::from(p[2])]);
+        let last_of_rollout = k + 1 == shard.steps() || shard.rollout[k + 1] != shard.rollout[k];
+        if shard.done[k] == 1 || last_of_rollout {
+            out.extend(flowmimic_motion::coverage::walking_velocities(&path));
+            path.clear();
+        }
+    }
+    out
 }

@@ -18,6 +18,7 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
     let control = |seconds: f64, scale: f32| ControlConfig {
         nfe,
         guidance_scale: scale,
+        gradient: Default::default(),
         guidance_steps: None,
         seconds,
         execute: 1,

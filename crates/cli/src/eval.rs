@@ -7,11 +7,11 @@ use crate::progress::Progress;
 use crate::run::start_clip;
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
-use flowmimic_control::StepReport;
+use flowmimic_control::{Hand, JoystickSegment, StepReport, Task};
 use flowmimic_data::Dataset;
 use flowmimic_eval::protocols::{self, Bench, Point};
 use flowmimic_eval::{frechet_distance, gaussian, mean_std};
-use flowmimic_model::TrajectoryModel;
+use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::{Humanoid, STATE_DIM};
 use std::collections::BTreeMap;
@@ -41,12 +41,21 @@ pub struct Common {
     /// Start trials from this clip's frames (default: the generated straight walk).
     #[arg(long)]
     clip: Option<PathBuf>,
+    /// How guidance takes its gradient: through-network (a vector-Jacobian product through
+    /// the denoiser) or cost-only.
+    #[arg(long, value_parser = parse_gradient, default_value = "through-network")]
+    gradient: Gradient,
+}
+
+/// `through-network` or `cost-only`.
+pub(crate) fn parse_gradient(text: &str) -> Result<Gradient, String> {
+    serde_json::from_str(&format!("\"{text}\"")).map_err(|_| format!("'{text}': use through-network or cost-only"))
 }
 
 impl Common {
     /// Settings for a programmatic run (the pipeline): models as LABEL=DIR.
     pub fn new(models: Vec<String>, out: PathBuf, quick: bool) -> Self {
-        Self { models, out, quick, trials: None, seed: 0, execute: 1, clip: None }
+        Self { models, out, quick, trials: None, seed: 0, execute: 1, clip: None, gradient: Gradient::default() }
     }
 }
 
@@ -104,6 +113,20 @@ pub enum EvalCommand {
         #[arg(long, value_delimiter = ',', default_value = "1,5,20")]
         nfe: Vec<usize>,
     },
+    /// How far guidance moves the executed action `a_t` against the later predicted actions,
+    /// and the task's error, for a backward joystick command, a left turn and a hand target,
+    /// through the network and of the cost only (the model's output alone, no physics).
+    Guidance {
+        #[command(flatten)]
+        common: Common,
+        #[arg(long, value_delimiter = ',', default_value = "1,3,10,30")]
+        scales: Vec<f32>,
+        #[arg(long, default_value_t = 5)]
+        nfe: usize,
+        /// Conditionings (start frames of the clip).
+        #[arg(long, default_value_t = 32)]
+        samples: usize,
+    },
     /// Time per control step (model and physics, batch 1) against NFE.
     Latency {
         #[command(flatten)]
@@ -147,7 +170,7 @@ struct Sweep {
 }
 
 impl Sweep {
-    const KEY: &'static str = "model,objective,horizon,nfe,scale,execute,seed,trial";
+    const KEY: &'static str = "model,objective,horizon,nfe,scale,gradient,execute,seed,trial";
 
     fn open(path: PathBuf, columns: &[&'static str]) -> Self {
         let mut rows: BTreeMap<String, Vec<Vec<f64>>> = BTreeMap::new();
@@ -157,9 +180,9 @@ impl Sweep {
         if lines.next() == Some(header.as_str()) {
             for line in lines {
                 let f: Vec<&str> = line.split(',').collect();
-                let values: Option<Vec<f64>> = f.get(8..).map(|v| v.iter().filter_map(|x| x.parse().ok()).collect());
+                let values: Option<Vec<f64>> = f.get(9..).map(|v| v.iter().filter_map(|x| x.parse().ok()).collect());
                 if let Some(v) = values.filter(|v| v.len() == columns.len()) {
-                    rows.entry(f[..7].join(",")).or_default().push(v);
+                    rows.entry(f[..8].join(",")).or_default().push(v);
                 }
             }
         }
@@ -169,7 +192,8 @@ impl Sweep {
     fn key(m: &Labelled, point: Point) -> String {
         let h = m.model.layout().spec.horizon;
         let (nfe, w, k, seed) = (point.nfe, point.scale, point.execute, point.seed);
-        format!("{},{},{h},{nfe},{w},{k},{seed}", m.label, m.model.objective.name())
+        let g = serde_json::to_string(&point.gradient).expect("json");
+        format!("{},{},{h},{nfe},{w},{},{k},{seed}", m.label, m.model.objective.name(), g.trim_matches('"'))
     }
 
     /// The point's rows: stored ones when complete, else computed by `run` and stored.
@@ -418,6 +442,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         | EvalCommand::Reach { common, .. }
         | EvalCommand::Compose { common, .. }
         | EvalCommand::Quality { common, .. }
+        | EvalCommand::Guidance { common, .. }
         | EvalCommand::Latency { common, .. } => common.clone(),
     };
     let models = load_models(&common.models)?;
@@ -426,10 +451,12 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     let seed = common.seed;
     let trials = |full: usize, quick: usize| common.trials.unwrap_or(if common.quick { quick } else { full }).max(1);
     let execute = common.execute;
-    let point = |nfe: usize, scale: f32| Point { nfe, scale, execute, seed };
+    let gradient = common.gradient;
+    let point = |nfe: usize, scale: f32| Point { nfe, scale, execute, seed, gradient };
     let by_nfe = |nfe: &[usize]| nfe.iter().map(|&n| point(n, 0.0)).collect::<Vec<_>>();
     let by_scale = |scales: &[f32], nfe: usize| scales.iter().map(|&w| point(nfe, w)).collect::<Vec<_>>();
     match cmd {
+        EvalCommand::Guidance { scales, nfe, samples, .. } => guidance_effect(&models, humanoid, &clip, &scales, nfe, samples, out)?,
         EvalCommand::Survival { nfe, seconds, .. } => {
             let trials = trials(50, 8);
             let seconds = seconds.unwrap_or(if common.quick { 10.0 } else { 1000.0 / flowmimic_sim::CONTROL_HZ });
@@ -693,4 +720,54 @@ fn dataset_features(dir: &Path) -> Result<Vec<Vec<f64>>> {
         bail!("{}: only {} states, too few for a reference", dir.display(), out.len());
     }
     Ok(out)
+}
+
+/// `flowmimic eval guidance`: the executed action's change against the later actions'.
+fn guidance_effect(
+    models: &[Labelled],
+    humanoid: &Arc<Humanoid>,
+    clip: &flowmimic_motion::Clip,
+    scales: &[f32],
+    nfe: usize,
+    samples: usize,
+    out: &Path,
+) -> Result<()> {
+    let walk = |vx, yaw_rate| JoystickSegment { seconds: 1.0, vx, vy: 0.0, yaw_rate };
+    let tasks = [
+        ("backward -0.5 m/s", Task { joystick: vec![walk(-0.5, 0.0)], ..Task::walk() }),
+        ("turn left 0.6 rad/s", Task { joystick: vec![walk(0.8, 0.6)], ..Task::walk() }),
+        ("right hand 0.5 m ahead, 1.3 m high", Task { reach: Some((Hand::Right, [0.5, -0.3, 1.3])), ..Task::walk() }),
+    ];
+    println!(
+        "{:<10} {:<36} {:<16} {:>6} {:>10} {:>10} {:>7} {:>10} {:>10}",
+        "model", "task", "gradient", "w", "|da_t|", "|da_t+k|", "ratio", "error", "unguided"
+    );
+    let mut rows = Vec::new();
+    for m in models {
+        for (name, task) in &tasks {
+            for gradient in [Gradient::ThroughNetwork, Gradient::CostOnly] {
+                for &scale in scales {
+                    let point = Point { nfe, scale, execute: 1, seed: 0, gradient };
+                    let e = protocols::guidance_effect(&m.bench(humanoid, clip), task, point, samples)?;
+                    let g = serde_json::to_string(&gradient)?;
+                    println!(
+                        "{:<10} {:<36} {:<16} {:>6} {:>10.4} {:>10.4} {:>7.2} {:>10.3} {:>10.3}",
+                        m.label,
+                        name,
+                        g.trim_matches('"'),
+                        scale,
+                        e.first_action,
+                        e.later_actions,
+                        e.first_action / e.later_actions.max(1e-12),
+                        e.error_guided,
+                        e.error_unguided
+                    );
+                    rows.push(serde_json::json!({"model": m.label, "task": name, "gradient": gradient, "scale": scale, "nfe": nfe, "samples": samples, "effect": e}));
+                }
+            }
+        }
+    }
+    flowmimic_io::write_atomic(&out.join("guidance.json"), serde_json::to_string_pretty(&rows)?.as_bytes())?;
+    eprintln!("wrote {}", out.join("guidance.json").display());
+    Ok(())
 }

@@ -2,7 +2,8 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
-use flowmimic_motion::{Clip, GaitParams, ImportOptions, Units, UpAxis, generator};
+use flowmimic_motion::{Clip, Coverage, GaitParams, ImportOptions, Units, UpAxis, WanderParams, coverage, generator};
+use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::Humanoid;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -28,24 +29,48 @@ pub enum MotionCommand {
         #[arg(long)]
         cyclic: bool,
     },
-    /// Generate walking clips procedurally: one from the gait flags, or `--count` diverse ones.
+    /// Generate walking clips procedurally: one from the gait flags, `--count` diverse ones, or
+    /// `--wander`ing walks whose command changes every 1.5-4 s (forward 0.3-1.6 m/s, backward to
+    /// -0.7, sidesteps to 0.3, turns to 0.8 rad/s, stops).
     Generate {
         #[command(flatten)]
         gait: GaitArgs,
-        /// Generate this many random walks (seeded) instead of one from the flags.
+        /// Generate this many walks (seeded) instead of one from the flags: random constant
+        /// walks, or with --wander wandering walks of seeds seed, seed+1, ...
         #[arg(long)]
         count: Option<usize>,
-        /// Seed for --count.
+        /// One long walk whose command wanders (of --duration seconds; the gait flags other
+        /// than --duration are not used).
+        #[arg(long)]
+        wander: bool,
+        /// Seed of the random walks.
         #[arg(long, default_value_t = 0)]
         seed: u64,
-        /// Clip name (with --count, names get a number).
-        #[arg(long, default_value = "walk")]
-        name: String,
+        /// Clip name (default walk, or wander_<seed>; with --count, names get a number).
+        #[arg(long)]
+        name: Option<String>,
         /// Output directory.
         #[arg(short, long, default_value = "runs/clips")]
         out: PathBuf,
     },
-    /// Print the quality table of clip files.
+    /// The default varied-walking corpus: wandering walks (seeds 1, 2, ...) plus every capture
+    /// (.bvh, DeepMimic .txt) in a folder, with its quality table and coverage.
+    Corpus {
+        /// Wandering walks to generate.
+        #[arg(long, default_value_t = 4)]
+        walks: usize,
+        /// Length of each wandering walk, s.
+        #[arg(long, default_value_t = 40.0)]
+        duration: f64,
+        /// Folder of captures to import (skipped with a note when it does not exist).
+        #[arg(long, default_value = "../shared/data/mocap")]
+        mocap: PathBuf,
+        /// Output directory.
+        #[arg(short, long, default_value = "runs/corpus")]
+        out: PathBuf,
+    },
+    /// Print the quality table of clip files and their coverage: how much walks backward, turns
+    /// and sidesteps, with histograms (coverage_*.png/svg beside the first file).
     Inspect {
         #[arg(required = true)]
         files: Vec<PathBuf>,
@@ -157,29 +182,129 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
             header();
             clips.iter().for_each(|c| row(humanoid, c));
         }
-        MotionCommand::Generate { gait, count, seed, name, out } => {
-            let set: Vec<(String, GaitParams)> = match count {
-                None => vec![(name, gait.params())],
-                Some(n) => generator::sample_set(n, seed, gait.duration)
-                    .into_iter()
-                    .enumerate()
-                    .map(|(i, p)| (format!("{name}_{i:03}"), p))
-                    .collect(),
-            };
+        MotionCommand::Generate { gait, count, wander, seed, name, out } => {
             header();
-            for (clip_name, p) in set {
-                let (clip, _) = flowmimic_motion::generate(humanoid, &clip_name, &p)?;
-                clip.save(&clip_path(&out, &clip_name))?;
-                row(humanoid, &clip);
+            let mut clips = Vec::new();
+            if wander {
+                let seeds: Vec<u64> = (0..count.unwrap_or(1) as u64).map(|k| seed + k).collect();
+                for s in seeds {
+                    let clip_name = match (&name, count) {
+                        (Some(n), None) => n.clone(),
+                        (Some(n), Some(_)) => format!("{n}_{s}"),
+                        (None, _) => format!("wander_{s}"),
+                    };
+                    let p = WanderParams { seed: s, duration: gait.duration };
+                    clips.push(flowmimic_motion::wander(humanoid, &clip_name, &p)?.0);
+                }
+            } else {
+                let name = name.unwrap_or_else(|| "walk".into());
+                let set: Vec<(String, GaitParams)> = match count {
+                    None => vec![(name, gait.params())],
+                    Some(n) => generator::sample_set(n, seed, gait.duration)?
+                        .into_iter()
+                        .enumerate()
+                        .map(|(i, p)| (format!("{name}_{i:03}"), p))
+                        .collect(),
+                };
+                for (clip_name, p) in set {
+                    clips.push(flowmimic_motion::generate(humanoid, &clip_name, &p)?.0);
+                }
+            }
+            for clip in &clips {
+                clip.save(&clip_path(&out, &clip.name))?;
+                row(humanoid, clip);
             }
             println!("written to {}", out.display());
         }
+        MotionCommand::Corpus { walks, duration, mocap, out } => {
+            let clips = corpus(humanoid, walks, duration, &mocap, &out)?;
+            header();
+            clips.iter().for_each(|c| row(humanoid, c));
+            print_coverage(&Coverage::of(clips.iter().flat_map(|c| c.walking_velocities()).collect()), &out)?;
+            println!("{} clips written to {}", clips.len(), out.display());
+        }
         MotionCommand::Inspect { files } => {
             header();
+            let mut velocities = Vec::new();
             for file in &files {
-                row(humanoid, &Clip::load(humanoid, file)?);
+                let clip = Clip::load(humanoid, file)?;
+                row(humanoid, &clip);
+                velocities.extend(clip.walking_velocities());
             }
+            let dir = files[0].parent().unwrap_or(Path::new("."));
+            print_coverage(&Coverage::of(velocities), dir)?;
         }
     }
+    Ok(())
+}
+
+/// Mean speed above which a capture is not walking (DeepMimic's run is 3.2 m/s), m/s.
+const MAX_WALKING_SPEED: f64 = 2.0;
+
+/// The varied-walking corpus: `walks` wandering walks of `duration` s (seeds 1..=walks) and the
+/// captures in `mocap` (when the folder exists), written to `out`.
+pub(crate) fn corpus(
+    humanoid: &Arc<Humanoid>,
+    walks: usize,
+    duration: f64,
+    mocap: &Path,
+    out: &Path,
+) -> Result<Vec<Clip>> {
+    let mut clips = Vec::new();
+    for seed in 1..=walks as u64 {
+        let p = WanderParams { seed, duration };
+        clips.push(flowmimic_motion::wander(humanoid, &format!("wander_{seed}"), &p)?.0);
+    }
+    if mocap.is_dir() {
+        let mut files: Vec<PathBuf> = std::fs::read_dir(mocap)
+            .with_context(|| format!("reading {}", mocap.display()))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|e| e.eq_ignore_ascii_case("bvh") || e.eq_ignore_ascii_case("txt")))
+            .collect();
+        files.sort();
+        for file in files {
+            let clip = flowmimic_motion::import(humanoid, &file, &ImportOptions::default())?.clip;
+            let speed = clip.quality(humanoid).speed;
+            if speed > MAX_WALKING_SPEED {
+                eprintln!("note: {} moves at {speed:.1} m/s, not a walk: left out", file.display());
+                continue;
+            }
+            clips.push(clip);
+        }
+    } else {
+        eprintln!("note: {} is not a folder; the corpus has generated walks only", mocap.display());
+    }
+    for clip in &clips {
+        clip.save(&clip_path(out, &clip.name))?;
+    }
+    Ok(clips)
+}
+
+/// Prints what a set of walking velocities covers and plots its histograms into `dir`.
+pub(crate) fn print_coverage(cov: &Coverage, dir: &Path) -> Result<()> {
+    let names = ["forward speed (m/s)", "sideways speed (m/s)", "yaw rate (rad/s)"];
+    println!("\ncoverage of {} steps (velocities averaged over 1 s)", cov.steps);
+    for (name, (lo, hi)) in names.iter().zip(cov.ranges) {
+        println!("  {name:<22} {lo:>7.2} .. {hi:>6.2}");
+    }
+    println!(
+        "  backward (forward < {} m/s) {:.1}%, turning (|yaw rate| > {} rad/s) {:.1}%, sidestepping (|sideways| > {} m/s) {:.1}%",
+        coverage::BACKWARD,
+        100.0 * cov.backward,
+        coverage::TURNING,
+        100.0 * cov.turning,
+        coverage::SIDESTEP,
+        100.0 * cov.sidestep
+    );
+    for (k, (stem, lo, hi)) in
+        [("coverage_forward", -1.0, 2.0), ("coverage_sideways", -0.8, 0.8), ("coverage_yaw_rate", -1.5, 1.5)]
+            .into_iter()
+            .enumerate()
+    {
+        Chart::new(&format!("coverage: {}", names[k]), names[k], "fraction of steps")
+            .series(Series::line(stem, cov.histogram(k, lo, hi, 30)))
+            .save(&dir.join(stem))?;
+    }
+    println!("wrote coverage_forward, coverage_sideways and coverage_yaw_rate (.png, .svg) in {}", dir.display());
     Ok(())
 }

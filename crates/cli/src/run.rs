@@ -3,7 +3,7 @@
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use flowmimic_control::{ControlConfig, Hand, JoystickSegment, Rollout, StepReport, Task};
-use flowmimic_model::TrajectoryModel;
+use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_sim::Humanoid;
 use std::path::{Path, PathBuf};
@@ -45,9 +45,15 @@ pub struct RunArgs {
     /// Network evaluations per control step.
     #[arg(long, default_value_t = 5)]
     pub nfe: usize,
-    /// Guidance scale w (v' = v - w grad G) on z-scored features; 0 for none.
+    /// Guidance scale w (v' = v - w grad G); each task's gradient is scaled to its error
+    /// (m/s, rad, m) in the model's normalised coordinates, so w means the same for every
+    /// task; 0 for none.
     #[arg(long, default_value_t = 2.0)]
     pub guidance_scale: f32,
+    /// How guidance takes its gradient: through-network (a vector-Jacobian product through the
+    /// denoiser, so a cost on states reaches the executed action) or cost-only.
+    #[arg(long, value_parser = crate::eval::parse_gradient, default_value = "through-network")]
+    pub gradient: Gradient,
     /// Solver steps that apply guidance, `start:end` (default: all but the last quarter).
     #[arg(long)]
     pub guidance_interval: Option<String>,
@@ -145,6 +151,7 @@ impl RunArgs {
         Ok(ControlConfig {
             nfe: self.nfe,
             guidance_scale: self.guidance_scale,
+            gradient: self.gradient,
             guidance_steps,
             seconds: self.seconds,
             execute: self.execute,

@@ -106,13 +106,42 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
         TrackCommand::Eval { run, episodes, kicks } => {
             let ck = Checkpoint::read(&run.join(RUN_POLICY))?;
             let (cfg, policy_net) = (ck.config()?, ck.policy()?);
+            // One JSON line per clip, so that a failing clip cannot hide behind an average.
             for clip in run_clips(humanoid, &run)? {
                 let report = evaluate(humanoid, &policy_net, &clip, &cfg, episodes.max(1), kicks, 12345)?;
-                println!("{}: {}", clip.name, serde_json::to_string_pretty(&report)?);
+                println!("{}", serde_json::to_string(&report)?);
             }
         }
     }
     Ok(())
+}
+
+const CLIPS_CSV_HEADER: &str = "iteration,clip,steps,episodes,failures,body_pos_error";
+
+/// Per clip over the last `iterations` iterations of clips.csv: failures per minute of tracked
+/// motion and the body error, worst first (printed at each checkpoint of a multi-clip run).
+fn print_clip_summary(names: &[String], rows: &[String], iterations: usize) {
+    if names.len() < 2 {
+        return;
+    }
+    let recent = &rows[rows.len().saturating_sub(iterations * names.len())..];
+    let mut per_clip: Vec<(f64, f64, &String)> = names
+        .iter()
+        .map(|name| {
+            let (mut steps, mut failures, mut error) = (0.0, 0.0, 0.0);
+            for f in recent.iter().map(|r| r.split(',').collect::<Vec<_>>()).filter(|f| f[1] == name.as_str()) {
+                let n: f64 = f[2].parse().unwrap_or(0.0);
+                steps += n;
+                failures += f[4].parse::<f64>().unwrap_or(0.0);
+                error += n * f[5].parse::<f64>().unwrap_or(0.0);
+            }
+            (failures / (steps.max(1.0) / 1800.0), error / steps.max(1.0), name)
+        })
+        .collect();
+    per_clip.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let line: Vec<String> =
+        per_clip.iter().map(|(f, e, n)| format!("{n} {f:.1}/min {:.1} cm", 100.0 * e)).collect();
+    eprintln!("\rfailures per minute of motion, body error: {}", line.join(", "));
 }
 
 /// Trains (or with `resume`, continues) an expert on `clips` into the run directory `out`.
@@ -130,6 +159,8 @@ pub fn train(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, out: &Path, cfg: &Track
         Trainer::new(humanoid, clips, cfg.clone())?
     };
     let mut log = CsvLog::open(log_path.clone(), IterationLog::CSV_HEADER, resume.then_some(trainer.iteration));
+    let mut clip_log = CsvLog::open(out.join("clips.csv"), CLIPS_CSV_HEADER, resume.then_some(trainer.iteration));
+    let names: Vec<String> = trainer.references.iter().map(|r| r.clip.name.clone()).collect();
     flowmimic_io::write_atomic(&out.join("config.json"), serde_json::to_string_pretty(&cfg)?.as_bytes())?;
     for (k, reference) in trainer.references.iter().enumerate() {
         reference.clip.save(&out.join(run_clip_file(k)))?;
@@ -150,10 +181,18 @@ pub fn train(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, out: &Path, cfg: &Track
     while trainer.iteration < cfg.iterations {
         let line: IterationLog = trainer.iterate().context("training stopped; the last checkpoint is intact")?;
         log.rows.push(line.csv_row());
+        for (name, c) in names.iter().zip(&line.clips) {
+            clip_log.rows.push(format!(
+                "{},{name},{},{},{},{:.4}",
+                line.iteration, c.steps, c.episodes, c.failures, c.body_pos_error
+            ));
+        }
         let last = trainer.iteration == cfg.iterations;
         if trainer.iteration % cfg.checkpoint_every.max(1) == 0 || last {
             trainer.save(&policy_path)?;
             log.save()?;
+            clip_log.save()?;
+            print_clip_summary(&names, &clip_log.rows, cfg.checkpoint_every.max(1));
             plot_curves(out, &log.rows)?;
         }
         let status = format!(

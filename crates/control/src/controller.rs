@@ -5,9 +5,9 @@
 use crate::history::History;
 use crate::rollout::{Rollout, RolloutInfo};
 use crate::task::{COMMAND_DIM, Task};
-use crate::{ControlError, Cost, Layout};
+use crate::{ControlError, Layout};
 use flowmimic_geom::CharFrame;
-use flowmimic_model::{TaskGuidance, TrajectoryModel};
+use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_sim::{CONTROL_HZ, Env, Humanoid, NUM_BODIES, NUM_DOFS};
 use rand::rngs::StdRng;
@@ -21,8 +21,13 @@ use std::time::{Duration, Instant};
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ControlConfig {
     pub nfe: usize,
-    /// `w` in `v' = v - w grad G`; 0 runs the model unguided.
+    /// `w` in `v' = v - w grad G`; 0 runs the model unguided. Each task's gradient is scaled
+    /// to its error (see [`crate::Sum::guidance_grad`]), so `w` means the same across tasks.
     pub guidance_scale: f32,
+    /// How the gradient reaches the noisy sample: through the network (default) or of the
+    /// cost only.
+    #[serde(default)]
+    pub gradient: Gradient,
     /// Solver steps [start, end) that apply guidance; default: all but the last quarter (the
     /// paper guides 15 of 20).
     pub guidance_steps: Option<(usize, usize)>,
@@ -41,8 +46,13 @@ pub struct ControlConfig {
 
 impl ControlConfig {
     pub fn guidance_steps(&self) -> (usize, usize) {
-        self.guidance_steps.unwrap_or((0, self.nfe - self.nfe / 4))
+        self.guidance_steps.unwrap_or(default_guidance_steps(self.nfe))
     }
+}
+
+/// The solver steps guided by default: all but the last quarter (the paper guides 15 of 20).
+pub fn default_guidance_steps(nfe: usize) -> (usize, usize) {
+    (0, nfe - nfe / 4)
 }
 
 /// What one control step cost, for live status.
@@ -124,6 +134,7 @@ pub fn run(
             horizon,
             guidance_scale: config.guidance_scale,
             guidance_steps: config.guidance_steps(),
+            gradient: config.gradient,
             tasks: tasks.clone(),
             seed: config.seed,
             start: format!("clip '{}'", clip.name),
@@ -161,6 +172,7 @@ pub fn run(
     let mut rng = StdRng::seed_from_u64(config.seed);
     let mut alive: Vec<usize> = (0..envs_n).collect();
     let (g0, g1) = config.guidance_steps();
+    let future_std = &model.norm.std[layout.cond_len()..];
     // Each environment's current plan and how many of its actions have been executed.
     let every = config.execute.clamp(1, horizon + 1);
     let mut plans: Vec<Option<(Vec<f32>, usize)>> = vec![None; envs_n];
@@ -185,13 +197,18 @@ pub fn run(
                 let mut g = vec![0.0; n * len];
                 for (i, cost) in costs.iter().enumerate().take(n) {
                     if let Some(c) = cost {
-                        c.add_grad(&x[i * len..(i + 1) * len], &mut g[i * len..(i + 1) * len]);
+                        c.guidance_grad(&x[i * len..(i + 1) * len], future_std, &mut g[i * len..(i + 1) * len]);
                     }
                 }
                 g
             };
             let guided = config.guidance_scale > 0.0 && costs.iter().any(Option::is_some);
-            let guidance = guided.then_some(TaskGuidance { weight: config.guidance_scale, grad: &grad, steps: g0..g1 });
+            let guidance = guided.then_some(TaskGuidance {
+                weight: config.guidance_scale,
+                grad: &grad,
+                steps: g0..g1,
+                gradient: config.gradient,
+            });
             let futures = model.sample(&cond, replan.len(), config.nfe, guidance.as_ref(), &mut rng);
             for (i, &e) in replan.iter().enumerate() {
                 plans[e] = Some((futures[i * len..(i + 1) * len].to_vec(), 0));

@@ -3,6 +3,11 @@
 //! Each cost reads a trajectory laid out by [`Layout`] in physical units (the model maps the
 //! gradient onto its normalised coordinates). Gradients are analytic; the tests check each
 //! against finite differences.
+//!
+//! Each cost also reports its error in its own unit (m/s, rad, m: the root mean square over
+//! the predicted steps), so that [`Sum::guidance_grad`] can make the guidance scale mean the same
+//! for every task and model: each term's gradient is scaled to a length, in the model's
+//! normalised coordinates, equal to its error.
 
 use crate::ControlError;
 use crate::layout::Layout;
@@ -14,6 +19,9 @@ pub trait Cost: Sync {
     fn cost(&self, tau: &[f32]) -> f32;
     /// Adds `dG/dtau` into `grad`.
     fn add_grad(&self, tau: &[f32], grad: &mut [f32]);
+    /// How far the trajectory is from what the cost asks, in the task's unit (root mean square
+    /// over the predicted steps).
+    fn error(&self, tau: &[f32]) -> f32;
 }
 
 fn finite(what: &'static str, values: &[f64]) -> Result<(), ControlError> {
@@ -23,21 +31,36 @@ fn finite(what: &'static str, values: &[f64]) -> Result<(), ControlError> {
     }
 }
 
-/// Joystick (paper eq. 7): `1/2 sum_k ||v_xy(s_k) - g_v||^2` over the predicted states, the
-/// command in the character frame of the current step (x forward, y left), m/s.
+/// Joystick (paper eq. 7): `1/2 sum_k ||v_xy(s_k) - g_v,k||^2` over the predicted states, the
+/// command (x forward, y left, m/s) in the character frame of the current step. With a turn
+/// rate `w` the walker is asked to turn, so the command at step k is turned by `w k dt`: a
+/// forward command stays forward for the body that turns.
 pub struct Joystick {
     layout: Layout,
     command: [f32; 2],
+    yaw_rate: f32,
 }
 
 impl Joystick {
     /// Commands beyond 3 m/s are refused: walking data never goes there.
     pub fn new(layout: Layout, vx: f64, vy: f64) -> Result<Self, ControlError> {
-        finite("joystick velocity", &[vx, vy])?;
+        Self::turning(layout, vx, vy, 0.0)
+    }
+
+    /// The command while turning at `yaw_rate` rad/s.
+    pub fn turning(layout: Layout, vx: f64, vy: f64, yaw_rate: f64) -> Result<Self, ControlError> {
+        finite("joystick velocity", &[vx, vy, yaw_rate])?;
         if vx.hypot(vy) > 3.0 {
             return Err(ControlError::BadCommand { what: "joystick speed (max 3 m/s)", value: vx.hypot(vy) });
         }
-        Ok(Self { layout, command: [vx as f32, vy as f32] })
+        Ok(Self { layout, command: [vx as f32, vy as f32], yaw_rate: yaw_rate as f32 })
+    }
+
+    /// The commanded velocity at predicted step k, in the current frame.
+    fn target(&self, k: usize) -> [f32; 2] {
+        let (s, c) = (self.yaw_rate * k as f32 / CONTROL_HZ as f32).sin_cos();
+        let [x, y] = self.command;
+        [c * x - s * y, s * x + c * y]
     }
 }
 
@@ -45,18 +68,22 @@ impl Cost for Joystick {
     fn cost(&self, tau: &[f32]) -> f32 {
         (1..=self.layout.horizon)
             .map(|k| {
-                let v = self.layout.root_vel(k);
-                0.5 * ((tau[v] - self.command[0]).powi(2) + (tau[v + 1] - self.command[1]).powi(2))
+                let (v, g) = (self.layout.root_vel(k), self.target(k));
+                0.5 * ((tau[v] - g[0]).powi(2) + (tau[v + 1] - g[1]).powi(2))
             })
             .sum()
     }
 
     fn add_grad(&self, tau: &[f32], grad: &mut [f32]) {
         for k in 1..=self.layout.horizon {
-            let v = self.layout.root_vel(k);
-            grad[v] += tau[v] - self.command[0];
-            grad[v + 1] += tau[v + 1] - self.command[1];
+            let (v, g) = (self.layout.root_vel(k), self.target(k));
+            grad[v] += tau[v] - g[0];
+            grad[v + 1] += tau[v + 1] - g[1];
         }
+    }
+
+    fn error(&self, tau: &[f32]) -> f32 {
+        (2.0 * self.cost(tau) / self.layout.horizon as f32).sqrt()
     }
 }
 
@@ -66,14 +93,16 @@ fn yaw(tau: &[f32], layout: &Layout, k: usize) -> f32 {
     tau[layout.root_rot(k) + 2]
 }
 
-/// Turn-rate variant of the joystick: `1/2 sum_k (yaw rate_k - g_w)^2`, the rate from
-/// successive predicted headings (the current step's heading is 0 in its own frame).
-pub struct TurnRate {
+/// Turning: `1/2 sum_k (yaw_k - w k dt)^2`, a heading target for every predicted step (the
+/// current step's heading is 0 in its own frame). Each step has its own target, so the gradient
+/// is spread over the horizon instead of landing on the last state, as a cost on differences of
+/// successive headings (a rate) would make it.
+pub struct Heading {
     layout: Layout,
     rate: f32,
 }
 
-impl TurnRate {
+impl Heading {
     pub fn new(layout: Layout, rate: f64) -> Result<Self, ControlError> {
         finite("turn rate", &[rate])?;
         if rate.abs() > 3.0 {
@@ -81,33 +110,25 @@ impl TurnRate {
         }
         Ok(Self { layout, rate: rate as f32 })
     }
+
+    fn target(&self, k: usize) -> f32 {
+        self.rate * k as f32 / CONTROL_HZ as f32
+    }
 }
 
-impl Cost for TurnRate {
+impl Cost for Heading {
     fn cost(&self, tau: &[f32]) -> f32 {
-        let hz = CONTROL_HZ as f32;
-        let mut prev = 0.0;
-        let mut total = 0.0;
-        for k in 1..=self.layout.horizon {
-            let y = yaw(tau, &self.layout, k);
-            total += 0.5 * ((y - prev) * hz - self.rate).powi(2);
-            prev = y;
-        }
-        total
+        (1..=self.layout.horizon).map(|k| 0.5 * (yaw(tau, &self.layout, k) - self.target(k)).powi(2)).sum()
     }
 
     fn add_grad(&self, tau: &[f32], grad: &mut [f32]) {
-        let hz = CONTROL_HZ as f32;
-        let mut prev = 0.0;
         for k in 1..=self.layout.horizon {
-            let y = yaw(tau, &self.layout, k);
-            let e = (y - prev) * hz - self.rate;
-            grad[self.layout.root_rot(k) + 2] += e * hz;
-            if k > 1 {
-                grad[self.layout.root_rot(k - 1) + 2] -= e * hz;
-            }
-            prev = y;
+            grad[self.layout.root_rot(k) + 2] += yaw(tau, &self.layout, k) - self.target(k);
         }
+    }
+
+    fn error(&self, tau: &[f32]) -> f32 {
+        (2.0 * self.cost(tau) / self.layout.horizon as f32).sqrt()
     }
 }
 
@@ -135,11 +156,13 @@ impl Reach {
         Ok(Self { layout, body, target: target.map(|x| x as f32) })
     }
 
-    /// A world-frame target, converted through the current root pose (`frame`).
+    /// A world-frame target, converted through the current root pose (`frame`). The target
+    /// may be any distance away (a walker that has wandered 6 m from it is pulled back, not
+    /// refused); only its height is checked, by [`Reach::new`]'s rule.
     pub fn world(layout: Layout, body: usize, target: [f64; 3], frame: &CharFrame) -> Result<Self, ControlError> {
-        finite("reach target", &target)?;
+        Self::new(layout, body, [0.0, 0.0, target[2]])?;
         let local = frame.point(DVec3::from_array(target));
-        Self::new(layout, body, [local.x, local.y, target[2]])
+        Ok(Self { layout, body, target: [local.x as f32, local.y as f32, target[2] as f32] })
     }
 
     /// Hand position in the current frame, and its own-frame offset rotated into it.
@@ -177,6 +200,10 @@ impl Cost for Reach {
             grad[b + 2] += e[2];
             grad[r] += -e[0] * rotated[1] + e[1] * rotated[0];
         }
+    }
+
+    fn error(&self, tau: &[f32]) -> f32 {
+        (self.cost(tau) / self.layout.horizon as f32).sqrt()
     }
 }
 
@@ -236,6 +263,10 @@ impl Cost for Waypoint {
             grad[v + 1] += 2.0 * near * tau[v + 1];
         }
     }
+
+    fn error(&self, tau: &[f32]) -> f32 {
+        (self.cost(tau) / self.layout.horizon as f32).sqrt()
+    }
 }
 
 /// A weighted sum of costs (walk to a point while reaching).
@@ -251,6 +282,27 @@ impl Sum {
     }
 }
 
+impl Sum {
+    /// The gradient guidance applies (physical units, added into `grad`): each term's gradient
+    /// scaled so that its length in the model's normalised coordinates (`std`, the standard
+    /// deviation of each trajectory entry: a normalised entry is `x / std`, so its gradient is
+    /// `std * dG/dx`) equals the term's error, times the term's weight. The guidance scale `w`
+    /// then means the same for every task and model: a 1 m/s joystick error, a 1 rad heading
+    /// error and a hand 1 m from its target pull equally hard.
+    pub fn guidance_grad(&self, tau: &[f32], std: &[f32], grad: &mut [f32]) {
+        let mut part = vec![0.0; grad.len()];
+        for (w, c) in &self.terms {
+            part.fill(0.0);
+            c.add_grad(tau, &mut part);
+            let length = part.iter().zip(std).map(|(g, s)| (g * s).powi(2)).sum::<f32>().sqrt();
+            if length > 1e-12 {
+                let scale = w * c.error(tau) / length;
+                grad.iter_mut().zip(&part).for_each(|(g, p)| *g += scale * p);
+            }
+        }
+    }
+}
+
 impl Cost for Sum {
     fn cost(&self, tau: &[f32]) -> f32 {
         self.terms.iter().map(|(w, c)| w * c.cost(tau)).sum()
@@ -263,5 +315,10 @@ impl Cost for Sum {
             c.add_grad(tau, &mut part);
             grad.iter_mut().zip(&part).for_each(|(g, p)| *g += w * p);
         }
+    }
+
+    /// The weighted root-sum-square of the terms' errors.
+    fn error(&self, tau: &[f32]) -> f32 {
+        self.terms.iter().map(|(w, c)| (w * c.error(tau)).powi(2)).sum::<f32>().sqrt()
     }
 }

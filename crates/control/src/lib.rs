@@ -5,7 +5,7 @@
 //! - [`rollout`]: the file a run writes (`flowmimic-rollout/1`);
 //! - [`layout`]: where the predicted actions and states sit in a trajectory;
 //! - [`history`]: the live conditioning `O_t`, built exactly as the training windows are;
-//! - [`costs`]: joystick velocity (paper eq. 7) and turn rate, end-effector reach (eq. 8),
+//! - [`costs`]: joystick velocity (paper eq. 7) and heading, end-effector reach (eq. 8),
 //!   waypoint navigation (BeyondMimic), and weighted sums.
 
 pub mod controller;
@@ -16,7 +16,7 @@ pub mod rollout;
 pub mod task;
 
 pub use controller::{ControlConfig, StepReport, run, start_from_clip};
-pub use costs::{Cost, Joystick, Reach, Sum, TurnRate, Waypoint};
+pub use costs::{Cost, Heading, Joystick, Reach, Sum, Waypoint};
 pub use history::History;
 pub use layout::Layout;
 pub use rollout::{Rollout, RolloutInfo};

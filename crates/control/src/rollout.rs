@@ -24,6 +24,10 @@ use crate::task::{COMMAND_DIM, Task};
 
 const FORMAT: &str = "flowmimic-rollout/1";
 
+fn cost_only() -> flowmimic_model::Gradient {
+    flowmimic_model::Gradient::CostOnly
+}
+
 /// What produced a rollout.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RolloutInfo {
@@ -33,6 +37,9 @@ pub struct RolloutInfo {
     pub horizon: usize,
     pub guidance_scale: f32,
     pub guidance_steps: (usize, usize),
+    /// How the guidance gradient was taken (files written before the choice: cost only).
+    #[serde(default = "cost_only")]
+    pub gradient: flowmimic_model::Gradient,
     pub tasks: Vec<Task>,
     pub seed: u64,
     pub start: String,

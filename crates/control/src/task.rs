@@ -1,7 +1,7 @@
 //! What the humanoid is asked to do, in the world and over time, and the cost that asks it at
 //! each control step (re-expressed in that step's character frame).
 
-use crate::costs::{Joystick, Reach, Sum, TurnRate, Waypoint};
+use crate::costs::{Heading, Joystick, Reach, Sum, Waypoint};
 use crate::{ControlError, Layout};
 use flowmimic_geom::CharFrame;
 use flowmimic_sim::skeleton::body;
@@ -43,7 +43,7 @@ pub struct Task {
     pub reach: Option<(Hand, [f64; 3])>,
     /// A world-frame goal for the pelvis (x, y).
     pub waypoint: Option<[f64; 2]>,
-    /// Relative weights of the joystick, yaw-rate, reach and waypoint costs.
+    /// Relative weights of the joystick, heading, reach and waypoint costs.
     pub weights: [f32; 4],
 }
 
@@ -70,7 +70,7 @@ impl Task {
                 return Err(ControlError::BadCommand { what: "joystick segment duration (s)", value: s.seconds });
             }
             Joystick::new(layout, s.vx, s.vy)?;
-            TurnRate::new(layout, s.yaw_rate)?;
+            Heading::new(layout, s.yaw_rate)?;
         }
         if let Some((_, target)) = self.reach {
             check_world(&target)?;
@@ -120,9 +120,9 @@ impl Task {
         let mut sum = Sum::default();
         let [wj, wt, wr, ww] = self.weights;
         if let Some(s) = self.joystick_at(time) {
-            sum = sum.with(wj, Joystick::new(layout, s.vx, s.vy)?);
+            sum = sum.with(wj, Joystick::turning(layout, s.vx, s.vy, s.yaw_rate)?);
             if s.yaw_rate != 0.0 {
-                sum = sum.with(wt, TurnRate::new(layout, s.yaw_rate)?);
+                sum = sum.with(wt, Heading::new(layout, s.yaw_rate)?);
             }
         }
         if let Some((hand, target)) = self.reach {

@@ -42,7 +42,8 @@ fn gradients_match_finite_differences() {
     let layout = Layout { horizon: 4 };
     let tau = trajectory(layout);
     check_gradient(&Joystick::new(layout, 1.0, -0.2).unwrap(), &tau, "joystick");
-    check_gradient(&TurnRate::new(layout, 0.5).unwrap(), &tau, "turn rate");
+    check_gradient(&Joystick::turning(layout, 1.0, -0.2, 0.7).unwrap(), &tau, "joystick while turning");
+    check_gradient(&Heading::new(layout, 0.5).unwrap(), &tau, "heading");
     check_gradient(&Reach::new(layout, body::R_HAND, [0.3, -0.5, 1.4]).unwrap(), &tau, "reach");
     check_gradient(&Waypoint::new(layout, [2.0, 1.0]).unwrap(), &tau, "waypoint far");
     check_gradient(&Waypoint::new(layout, [0.1, 0.05]).unwrap(), &tau, "waypoint near");
@@ -96,5 +97,56 @@ fn bad_commands_are_refused_with_the_value() {
     assert!(Reach::new(layout, body::R_HAND, [9.0, 0.0, 1.0]).is_err());
     assert!(Reach::new(layout, body::R_HAND, [0.5, 0.0, -1.0]).is_err());
     assert!(Waypoint::new(layout, [f64::INFINITY, 0.0]).is_err());
-    assert!(TurnRate::new(layout, 7.0).is_err());
+    assert!(Heading::new(layout, 7.0).is_err());
+}
+
+#[test]
+fn turning_is_asked_step_by_step_and_far_targets_still_pull() {
+    let layout = Layout { horizon: 16 };
+    let mut tau = vec![0.0f32; layout.len()];
+    let dt = 1.0 / 30.0;
+    // A walker turning at exactly 0.6 rad/s with its forward velocity turning along.
+    for k in 1..=16 {
+        let yaw = 0.6 * k as f32 * dt;
+        tau[layout.root_rot(k) + 2] = yaw;
+        tau[layout.root_vel(k)..layout.root_vel(k) + 2].copy_from_slice(&[0.8 * yaw.cos(), 0.8 * yaw.sin()]);
+    }
+    let heading = Heading::new(layout, 0.6).unwrap();
+    assert!(heading.cost(&tau) < 1e-10 && heading.error(&tau) < 1e-5);
+    assert!(Joystick::turning(layout, 0.8, 0.0, 0.6).unwrap().cost(&tau) < 1e-10);
+    // The heading gradient is spread over the steps: none holds more than a third of it (a
+    // rate on successive differences put it all on the last state).
+    let still = vec![0.0f32; layout.len()];
+    let mut grad = vec![0.0; layout.len()];
+    heading.add_grad(&still, &mut grad);
+    let per_step: Vec<f32> = (1..=16).map(|k| grad[layout.root_rot(k) + 2].abs()).collect();
+    let total: f32 = per_step.iter().sum();
+    assert!(per_step.iter().all(|g| *g < total / 3.0), "{per_step:?}");
+    // A hand target 6 m away (the walker wandered off) is a cost like any other, not an error.
+    let frame = CharFrame::new(DVec3::new(0.0, 0.0, 0.9), 0.0);
+    let far = Reach::world(layout, body::R_HAND, [6.0, 0.0, 1.2], &frame).unwrap();
+    assert!(far.error(&still) > 5.0);
+    assert!(Reach::world(layout, body::R_HAND, [6.0, 0.0, 3.5], &frame).is_err(), "heights are still checked");
+}
+
+#[test]
+fn guidance_gradients_have_the_length_of_their_error_in_normalised_units() {
+    let layout = Layout { horizon: 4 };
+    let tau = trajectory(layout);
+    let std: Vec<f32> = (0..layout.len()).map(|i| 0.1 + 0.05 * (i % 7) as f32).collect();
+    let joystick = Joystick::new(layout, 1.5, 0.0).unwrap();
+    let reach = Reach::new(layout, body::R_HAND, [0.3, -0.5, 1.4]).unwrap();
+    let length = |g: &[f32]| g.iter().zip(&std).map(|(g, s)| (g * s).powi(2)).sum::<f32>().sqrt();
+    for (cost, error) in [
+        (Sum::default().with(1.0, Joystick::new(layout, 1.5, 0.0).unwrap()), joystick.error(&tau)),
+        (Sum::default().with(2.0, Reach::new(layout, body::R_HAND, [0.3, -0.5, 1.4]).unwrap()), 2.0 * reach.error(&tau)),
+    ] {
+        let mut g = vec![0.0; layout.len()];
+        cost.guidance_grad(&tau, &std, &mut g);
+        assert!((length(&g) - error).abs() < 1e-4 * (1.0 + error), "{} vs {error}", length(&g));
+        // It points where the cost's own gradient points.
+        let mut plain = vec![0.0; layout.len()];
+        cost.add_grad(&tau, &mut plain);
+        assert!(g.iter().zip(&plain).map(|(a, b)| a * b).sum::<f32>() > 0.0);
+    }
 }

@@ -18,7 +18,7 @@ use flowmimic_sim::{Humanoid, NUM_DOFS, STATE_DIM};
 use flowmimic_track::TrackConfig;
 use flowmimic_track::ppo::Policy;
 use flowmimic_track::task::{Ending, OBS_DIM, Reference, Tracker};
-use rand::SeedableRng;
+use rand::{Rng, SeedableRng};
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, Normal};
 use rayon::prelude::*;
@@ -103,10 +103,13 @@ pub fn collect(
     if lanes.is_empty() {
         return Err(DataError::Invalid("collect.noise allocates no environments".into()));
     }
-    for lane in &mut lanes {
-        lane.tracker.reset(&reference, 0, &run_cfg, &mut lane.rng)?;
-    }
+    // Lanes start spread evenly over the clip and restart at a random frame after a failure, so
+    // that a long clip is covered to its end even when the expert sometimes fails.
     let n = lanes.len();
+    let frames = reference.len().saturating_sub(1).max(1);
+    for (i, lane) in lanes.iter_mut().enumerate() {
+        lane.tracker.reset(&reference, i * frames / n, &run_cfg, &mut lane.rng)?;
+    }
     let started = std::time::Instant::now();
     let mut obs = vec![0.0f32; n * OBS_DIM];
     for step in 0..steps {
@@ -140,7 +143,8 @@ pub fn collect(
                 }
                 if done && !last {
                     lane.episodes += 1;
-                    lane.tracker.reset(&reference, 0, &run_cfg, &mut lane.rng)?;
+                    let start = if ending == Ending::ClipEnd { 0 } else { lane.rng.random_range(0..frames) };
+                    lane.tracker.reset(&reference, start, &run_cfg, &mut lane.rng)?;
                 }
                 Ok(())
             })

@@ -4,7 +4,7 @@
 use crate::{composition_success, reach_errors, velocity_rmse};
 use flowmimic_control::{ControlConfig, ControlError, Hand, Rollout, StepReport, Task, controller};
 use flowmimic_geom::{DVec3, heading, quat_from_wxyz, wrap_angle, yaw_quat};
-use flowmimic_model::TrajectoryModel;
+use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_sim::skeleton::body;
 use flowmimic_sim::state::offset;
@@ -30,6 +30,8 @@ pub struct Point {
     /// Actions executed per sampled trajectory.
     pub execute: usize,
     pub seed: u64,
+    #[serde(default)]
+    pub gradient: Gradient,
 }
 
 impl Bench<'_> {
@@ -44,6 +46,7 @@ impl Bench<'_> {
         let config = ControlConfig {
             nfe: point.nfe,
             guidance_scale: point.scale,
+            gradient: point.gradient,
             guidance_steps: None,
             seconds,
             execute: point.execute,
@@ -246,4 +249,79 @@ pub fn latency(bench: &Bench, point: Point, seconds: f64) -> Result<(f64, f64), 
     let r = bench.run(vec![Task::walk()], point, seconds, false, |_| {})?;
     let (model_ms, physics_ms) = r.median_ms();
     Ok((f64::from(model_ms), f64::from(physics_ms)))
+}
+
+/// How far guidance moves what is executed, measured on the model's output alone (no
+/// physics): for `samples` conditionings from the start clip, the same noise sampled unguided
+/// and guided; `first_action` is the mean absolute change of the executed action `a_t`,
+/// `later_actions` that of `a_{t+1} .. a_{t+H}` (normalised action units), and the task's
+/// error (m/s, rad or m) before and after. The task's hand target and waypoint are given in
+/// each start's character frame (x ahead, y left, z height).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GuidanceEffect {
+    pub first_action: f64,
+    pub later_actions: f64,
+    pub error_unguided: f64,
+    pub error_guided: f64,
+}
+
+pub fn guidance_effect(bench: &Bench, task: &Task, point: Point, samples: usize) -> Result<GuidanceEffect, ControlError> {
+    use flowmimic_control::{Cost, History, Layout};
+    use flowmimic_geom::CharFrame;
+    use flowmimic_model::TaskGuidance;
+    let layout = bench.model.layout();
+    let traj = Layout { horizon: layout.spec.horizon };
+    let (mut cond, mut costs) = (Vec::new(), Vec::new());
+    for e in 0..samples {
+        let mut env = bench.humanoid.env();
+        let mut history = History::new(layout.spec);
+        let frame = controller::start_frame(bench.clip.len(), layout.spec.history, e);
+        controller::start_from_clip(&mut env, &mut history, bench.clip, frame, layout.spec.history)?;
+        let (states, actions) = history.conditioning();
+        cond.extend(layout.interleave(&states, &actions));
+        let mut task = task.clone();
+        if let Some((_, target)) = task.reach.as_mut() {
+            let t = bench.start_to_world(e, DVec3::from_array(*target));
+            *target = [t.x, t.y, target[2]];
+        }
+        if let Some(goal) = task.waypoint.as_mut() {
+            let g = bench.start_to_world(e, DVec3::new(goal[0], goal[1], 0.0));
+            *goal = [g.x, g.y];
+        }
+        let b = env.bodies();
+        let cost = task.cost(traj, 0.0, &CharFrame::from_root(b.pos[0], b.rot[0]))?;
+        costs.push(cost.ok_or(ControlError::Start("the task asks nothing to guide".into()))?);
+    }
+    let (len, std) = (traj.len(), &bench.model.norm.std[layout.cond_len()..]);
+    let grad = |x: &[f32], n: usize| -> Vec<f32> {
+        let mut g = vec![0.0; n * len];
+        for (i, c) in costs.iter().enumerate().take(n) {
+            c.guidance_grad(&x[i * len..(i + 1) * len], std, &mut g[i * len..(i + 1) * len]);
+        }
+        g
+    };
+    let nfe = point.nfe;
+    let steps = controller::default_guidance_steps(nfe);
+    let guidance = TaskGuidance { weight: point.scale, grad: &grad, steps: steps.0..steps.1, gradient: point.gradient };
+    let unguided = bench.model.sample(&cond, samples, nfe, None, &mut StdRng::seed_from_u64(point.seed));
+    let guided = bench.model.sample(&cond, samples, nfe, Some(&guidance), &mut StdRng::seed_from_u64(point.seed));
+    let change = |k: usize| -> f64 {
+        let at = traj.action(k);
+        let sum: f32 = (0..samples)
+            .flat_map(|i| (0..flowmimic_sim::NUM_DOFS).map(move |j| i * len + at + j))
+            .map(|j| (guided[j].clamp(-1.0, 1.0) - unguided[j].clamp(-1.0, 1.0)).abs())
+            .sum();
+        f64::from(sum) / (samples * flowmimic_sim::NUM_DOFS) as f64
+    };
+    let error = |x: &[f32]| -> f64 {
+        costs.iter().enumerate().map(|(i, c)| f64::from(c.error(&x[i * len..(i + 1) * len]))).sum::<f64>()
+            / samples as f64
+    };
+    let h = traj.horizon;
+    Ok(GuidanceEffect {
+        first_action: change(0),
+        later_actions: (1..=h).map(change).sum::<f64>() / h as f64,
+        error_unguided: error(&unguided),
+        error_guided: error(&guided),
+    })
 }

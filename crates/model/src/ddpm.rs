@@ -8,7 +8,7 @@
 //! diverged. Sampling at any NFE respaces the schedule in closed form: for chosen steps `k_1 < ... < k_M = T`,
 //! `abar'_i = abar_{k_i}` and `beta'_i = 1 - abar_{k_i} / abar_{k_{i-1}}` (with `abar_{k_0} = 1`).
 
-use crate::{Guidance, Network, TrainingBatch};
+use crate::{Guidance, Network, TrainingBatch, guided_prediction};
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
@@ -100,7 +100,7 @@ pub fn training_batch(
 
 /// Ancestral sampling with `nfe` network evaluations from noise `x_t` (n x dim). The clean
 /// prediction `x_0 = (x_k - sqrt(1 - abar) eps) / sqrt(abar)` is clipped to `[-clip, clip]`
-/// (as Diffusion Policy does) and, with guidance, moved by `-w grad G(x_0)` before the
+/// (as Diffusion Policy does) and, with guidance, moved by `-w grad_x G(x_0(x))` before the
 /// posterior step.
 #[allow(clippy::too_many_arguments)]
 pub fn sample(
@@ -123,13 +123,17 @@ pub fn sample(
         let step = steps.len() - 1 - i; // 0 for the first (noisiest) solver step
         let ab = schedule.alpha_bar[k];
         let ab_prev = if i == 0 { 1.0 } else { schedule.alpha_bar[steps[i - 1]] };
-        let out = net.predict(&x, &vec![k as f32 / total; n], cond, n);
         let (sa, s1a) = (ab.sqrt() as f32, (1.0 - ab).sqrt() as f32);
-        let mut x0: Vec<f32> = match prediction {
-            Prediction::Epsilon => x.iter().zip(&out).map(|(x, e)| ((x - s1a * e) / sa).clamp(-clip, clip)).collect(),
-            Prediction::Sample => out.iter().map(|x0| x0.clamp(-clip, clip)).collect(),
+        // The clean estimate is a x + b out.
+        let ab_coef = match prediction {
+            Prediction::Epsilon => (1.0 / sa, -s1a / sa),
+            Prediction::Sample => (0.0, 1.0),
         };
-        if let Some(delta) = guidance.and_then(|g| g.nudge(step, &x0, n, 1.0)) {
+        let t = vec![k as f32 / total; n];
+        let (out, delta) = guided_prediction(net, &x, &t, cond, n, ab_coef, guidance, step);
+        let mut x0: Vec<f32> =
+            x.iter().zip(&out).map(|(x, o)| (ab_coef.0 * x + ab_coef.1 * o).clamp(-clip, clip)).collect();
+        if let Some(delta) = delta {
             x0.iter_mut().zip(delta).for_each(|(x, d)| *x -= d);
         }
         if i == 0 {

@@ -1,7 +1,7 @@
 //! Flow Matching (paper eq. 1): regress `v(x_s, s)` on `x_1 - x_0` along the straight path
 //! `x_s = (1 - s) x_0 + s x_1`, `x_0 ~ N(0, I)`; sample by integrating `dx/ds = v` from s = 0.
 
-use crate::{Guidance, Network, TrainingBatch};
+use crate::{Guidance, Network, TrainingBatch, guided_prediction};
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
@@ -50,7 +50,7 @@ pub fn training_batch(x1: &[f32], dim: usize, times: TimeDistribution, rng: &mut
 }
 
 /// Samples `n` trajectories with `nfe` network evaluations from noise `x0` (n x dim).
-/// With guidance, each active step uses `v' = v - w grad G(x_hat)`, `x_hat = x + (1 - s) v`.
+/// With guidance, each active step uses `v' = v - w grad_x G(x_hat)`, `x_hat = x + (1 - s) v`.
 pub fn sample(
     net: &dyn Network,
     cond: &[f32],
@@ -67,12 +67,9 @@ pub fn sample(
     let h = 1.0 / steps as f32;
     let mut x = x0;
     let velocity = |x: &[f32], s: f32, step: usize| -> Vec<f32> {
-        let mut v = net.predict(x, &vec![s; n], cond, n);
-        if let Some(g) = guidance {
-            let x_hat: Vec<f32> = x.iter().zip(&v).map(|(x, v)| x + (1.0 - s) * v).collect();
-            if let Some(delta) = g.nudge(step, &x_hat, n, 1.0) {
-                v.iter_mut().zip(delta).for_each(|(v, d)| *v -= d);
-            }
+        let (mut v, delta) = guided_prediction(net, x, &vec![s; n], cond, n, (1.0, 1.0 - s), guidance, step);
+        if let Some(delta) = delta {
+            v.iter_mut().zip(delta).for_each(|(v, d)| *v -= d);
         }
         v
     };

@@ -7,8 +7,12 @@
 //!   to data (s = 1), velocity regression, Euler and Heun solvers at any NFE;
 //! - [`ddpm`]: the DDPM baseline (epsilon prediction, cosine schedule), respaced to any NFE in
 //!   closed form, ancestral sampling;
-//! - [`Guidance`]: a cost gradient applied to the predicted clean sample on an interval of
-//!   solver steps (`v' = v - w grad G(x_hat)` for FM; the same on DDPM's `x_0` prediction).
+//! - [`Guidance`]: the gradient of a cost of the predicted clean sample `x_hat(x)` with respect
+//!   to the noisy sample `x` (paper eq. 2), applied on an interval of solver steps
+//!   (`v' = v - w grad_x G(x_hat(x))` for FM; the same on DDPM's `x_0` prediction). It is taken
+//!   through the network by a vector-Jacobian product ([`Gradient::ThroughNetwork`], DPS-style: the
+//!   network's learned coupling carries a cost on states into the actions), or of the cost
+//!   alone, treating `d x_hat / d x` as the identity ([`Gradient::CostOnly`]).
 //!
 //! - [`trajectory`]: the Transformer over per-step tokens with the data's normalisation, and
 //!   the sampling API the controller calls;
@@ -31,26 +35,74 @@ use std::ops::Range;
 pub trait Network {
     fn dim(&self) -> usize;
     fn predict(&self, x: &[f32], t: &[f32], cond: &[f32], n: usize) -> Vec<f32>;
+    /// The prediction `y` and the vector-Jacobian product `(dy/dx)^T u` for the cotangent
+    /// `u = cotangent(y)` (n x dim each).
+    fn predict_pullback(
+        &self,
+        x: &[f32],
+        t: &[f32],
+        cond: &[f32],
+        n: usize,
+        cotangent: &mut dyn FnMut(&[f32]) -> Vec<f32>,
+    ) -> (Vec<f32>, Vec<f32>);
+}
+
+/// How the guidance gradient with respect to the noisy sample is taken.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Gradient {
+    /// `(d x_hat / d x)^T grad G(x_hat)` by a vector-Jacobian product through the network.
+    #[default]
+    ThroughNetwork,
+    /// `grad G(x_hat)`: the cost's gradient alone, as if `x_hat` were `x`.
+    CostOnly,
 }
 
 /// Test-time guidance: `grad` returns the gradient of the task cost at the predicted clean
-/// samples (n x dim), differentiating the cost only, never the network.
+/// samples (n x dim); `gradient` says how it is carried back to the noisy sample.
 pub struct Guidance<'a> {
     pub weight: f32,
     pub grad: &'a (dyn Fn(&[f32], usize) -> Vec<f32> + Sync),
     /// Solver steps (0-based) on which guidance acts; the paper skips the last 5 of 20.
     pub steps: Range<usize>,
+    pub gradient: Gradient,
 }
 
-impl Guidance<'_> {
-    /// `x_hat - scale * weight * grad G(x_hat)` on active steps.
-    fn nudge(&self, step: usize, x_hat: &[f32], n: usize, scale: f32) -> Option<Vec<f32>> {
-        if !self.steps.contains(&step) || self.weight == 0.0 {
-            return None;
+/// A network's prediction at `x` and, on guided steps, `weight * grad_x G(x_hat(x))`, where
+/// `x_hat = a x + b y` is the clean sample the objective infers from the prediction `y`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn guided_prediction(
+    net: &dyn Network,
+    x: &[f32],
+    t: &[f32],
+    cond: &[f32],
+    n: usize,
+    (a, b): (f32, f32),
+    guidance: Option<&Guidance>,
+    step: usize,
+) -> (Vec<f32>, Option<Vec<f32>>) {
+    let Some(g) = guidance.filter(|g| g.steps.contains(&step) && g.weight != 0.0) else {
+        return (net.predict(x, t, cond, n), None);
+    };
+    let x_hat = |y: &[f32]| -> Vec<f32> { x.iter().zip(y).map(|(x, y)| a * x + b * y).collect() };
+    let (y, grad_x) = match g.gradient {
+        Gradient::CostOnly => {
+            let y = net.predict(x, t, cond, n);
+            let grad = (g.grad)(&x_hat(&y), n);
+            (y, grad)
         }
-        let g = (self.grad)(x_hat, n);
-        Some(g.iter().map(|g| scale * self.weight * g).collect())
-    }
+        Gradient::ThroughNetwork => {
+            // grad_x G = a grad G + (dy/dx)^T (b grad G), with grad G at x_hat(y).
+            let mut at_x_hat = Vec::new();
+            let (y, pulled) = net.predict_pullback(x, t, cond, n, &mut |y| {
+                at_x_hat = (g.grad)(&x_hat(y), n);
+                at_x_hat.iter().map(|g| b * g).collect()
+            });
+            let grad = at_x_hat.iter().zip(&pulled).map(|(g, p)| a * g + p).collect();
+            (y, grad)
+        }
+    };
+    (y, Some(grad_x.into_iter().map(|v: f32| g.weight * v).collect()))
 }
 
 /// A training batch: the network's input, noise levels and regression target.

@@ -9,7 +9,7 @@
 //! position has its own learned embedding. The loss and the sampler only look at `tau_t`.
 
 use crate::fm::{self, Solver};
-use crate::{Guidance, Network, ddpm};
+use crate::{Gradient, Guidance, Network, ddpm};
 use flowmimic_data::{Stats, WindowSpec};
 use flowmimic_nn::{Transformer, TransformerConfig};
 use rand::rngs::StdRng;
@@ -192,6 +192,23 @@ impl Network for TrajectoryNet {
     fn predict(&self, x: &[f32], t: &[f32], cond: &[f32], n: usize) -> Vec<f32> {
         self.future(&self.net.predict(&self.tokens(x, cond, n), t, n))
     }
+
+    fn predict_pullback(
+        &self,
+        x: &[f32],
+        t: &[f32],
+        cond: &[f32],
+        n: usize,
+        cotangent: &mut dyn FnMut(&[f32]) -> Vec<f32>,
+    ) -> (Vec<f32>, Vec<f32>) {
+        let tape = self.net.forward(&self.tokens(x, cond, n), t, n);
+        let y = self.future(&tape.output);
+        let u = cotangent(&y);
+        // The cotangent covers the future tokens; the conditioning's outputs are not used.
+        let zeros = vec![0.0; self.layout.cond_len() * n];
+        let d_input = self.net.input_grad(&tape, &self.tokens(&u, &zeros, n));
+        (y, self.future(&d_input))
+    }
 }
 
 /// A trained model: network, normalisation and objective.
@@ -210,6 +227,7 @@ pub struct TaskGuidance<'a> {
     pub weight: f32,
     pub grad: &'a (dyn Fn(&[f32], usize) -> Vec<f32> + Sync),
     pub steps: std::ops::Range<usize>,
+    pub gradient: Gradient,
 }
 
 impl TrajectoryModel {
@@ -226,7 +244,7 @@ impl TrajectoryModel {
 
     /// Samples futures (n x future, physical units) given conditionings (n x cond, physical
     /// units, as [`TokenLayout::interleave`] of the history's states and actions) with `nfe`
-    /// network evaluations. No gradient of the network is ever taken.
+    /// network evaluations; with guidance, its gradient is taken as `guidance.gradient` says.
     pub fn sample(
         &self,
         cond: &[f32],
@@ -245,7 +263,12 @@ impl TrajectoryModel {
             let g = (guidance.expect("only called with guidance").grad)(&physical, n);
             g.chunks_exact(f).flat_map(|row| row.iter().enumerate().map(|(j, g)| g * self.norm.std[c + j])).collect()
         };
-        let inner = guidance.map(|g| Guidance { weight: g.weight, grad: &normalised_grad, steps: g.steps.clone() });
+        let inner = guidance.map(|g| Guidance {
+            weight: g.weight,
+            grad: &normalised_grad,
+            steps: g.steps.clone(),
+            gradient: g.gradient,
+        });
         let noise: Vec<f32> = (0..n * f).map(|_| StandardNormal.sample(rng)).collect();
         let mut x = match self.objective {
             Objective::Fm { solver, .. } => fm::sample(&self.net, &cond, noise, n, nfe, solver, inner.as_ref()),
@@ -261,5 +284,56 @@ impl TrajectoryModel {
     /// Network FLOPs of one sampling call for `n` samples at `nfe`.
     pub fn sample_flops(&self, n: usize, nfe: usize) -> f64 {
         self.net.net.flops_per_sample() * (n * nfe) as f64
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{Gradient, guided_prediction};
+
+    /// A small network with random weights everywhere, so every path of the pullback counts.
+    fn small_net() -> TrajectoryNet {
+        let layout = TokenLayout { state_dim: 3, action_dim: 2, spec: WindowSpec { history: 1, horizon: 2 } };
+        let config = ModelConfig { history: 1, horizon: 2, d_model: 8, heads: 2, layers: 2, d_ff: 12, time_features: 4 };
+        let mut rng = StdRng::seed_from_u64(4);
+        let mut net = Transformer::new(config.transformer(&layout), &mut rng);
+        net.params.iter_mut().for_each(|p| *p += 0.4 * rng.random::<f32>() - 0.2);
+        TrajectoryNet { layout, net }
+    }
+
+    #[test]
+    fn guidance_through_the_network_is_the_gradient_of_the_cost_of_the_clean_estimate() {
+        let net = small_net();
+        let (n, f, c) = (2, net.layout.future_len(), net.layout.cond_len());
+        let x: Vec<f32> = (0..n * f).map(|i| (i as f32 * 0.7).sin()).collect();
+        let cond: Vec<f32> = (0..n * c).map(|i| (i as f32 * 0.3).cos()).collect();
+        let t = vec![0.4; n];
+        let target: Vec<f32> = (0..n * f).map(|i| (i as f32 * 0.2).cos()).collect();
+        // G(x_hat) = 1/2 |x_hat - target|^2; FM's clean estimate x_hat = x + (1 - s) v(x), and
+        // DDPM's epsilon form x_hat = (x - sqrt(1 - abar) eps(x)) / sqrt(abar).
+        let grad = |x_hat: &[f32], _n: usize| -> Vec<f32> { x_hat.iter().zip(&target).map(|(a, b)| a - b).collect() };
+        for (a, b) in [(1.0, 0.6), (1.25, -0.75)] {
+            let cost = |x: &[f32]| -> f64 {
+                let y = net.predict(x, &t, &cond, n);
+                x.iter().zip(&y).zip(&target).map(|((x, y), g)| 0.5 * f64::from(a * x + b * y - g).powi(2)).sum()
+            };
+            let guidance = Guidance { weight: 1.0, grad: &grad, steps: 0..1, gradient: Gradient::ThroughNetwork };
+            let (_, through) = guided_prediction(&net, &x, &t, &cond, n, (a, b), Some(&guidance), 0);
+            let through = through.unwrap();
+            let eps = 1e-2;
+            for k in 0..x.len() {
+                let (mut plus, mut minus) = (x.clone(), x.clone());
+                plus[k] += eps;
+                minus[k] -= eps;
+                let fd = (cost(&plus) - cost(&minus)) / (2.0 * f64::from(eps));
+                let g = f64::from(through[k]);
+                assert!((fd - g).abs() < 2e-2 * (1.0 + fd.abs()), "({a}, {b}) x[{k}]: fd {fd} vs {g}");
+            }
+            // The cost-only gradient differs: it leaves out the network's Jacobian.
+            let guidance = Guidance { gradient: Gradient::CostOnly, ..guidance };
+            let (_, only) = guided_prediction(&net, &x, &t, &cond, n, (a, b), Some(&guidance), 0);
+            assert!(only.unwrap().iter().zip(&through).any(|(p, q)| (p - q).abs() > 1e-3));
+        }
     }
 }

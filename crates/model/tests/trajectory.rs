@@ -1,7 +1,7 @@
 //! The trajectory model's plumbing: token layout, normalisation, and guidance in physical units.
 
 use flowmimic_data::{Stats, WindowSpec};
-use flowmimic_model::{ModelConfig, TaskGuidance, TokenLayout, TrainConfig, TrajectoryModel};
+use flowmimic_model::{Gradient, ModelConfig, TaskGuidance, TokenLayout, TrainConfig, TrajectoryModel};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
@@ -54,7 +54,7 @@ fn guidance_acts_in_physical_units() {
         }
         g
     };
-    let guidance = TaskGuidance { weight: 0.2, grad: &grad, steps: 0..10 };
+    let guidance = TaskGuidance { weight: 0.2, grad: &grad, steps: 0..10, gradient: Gradient::CostOnly };
     let guided = model.sample(&cond, 4, 10, Some(&guidance), &mut StdRng::seed_from_u64(1));
     assert!(state0(&guided) > state0(&unguided) + 10.0, "guided {} vs {}", state0(&guided), state0(&unguided));
     // The other entries move far less than the guided one.

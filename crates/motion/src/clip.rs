@@ -175,6 +175,13 @@ impl Clip {
         Ok(clip)
     }
 
+    /// The walking each frame carries out (see [`crate::coverage::walking_velocities`]).
+    pub fn walking_velocities(&self) -> Vec<[f64; 3]> {
+        let path: Vec<[f64; 3]> =
+            self.qpos.iter().map(|q| [q[0], q[1], flowmimic_geom::heading(quat_of(q))]).collect();
+        crate::coverage::walking_velocities(&path)
+    }
+
     /// Walking-quality metrics, computed through the simulator's kinematics.
     pub fn quality(&self, humanoid: &Arc<Humanoid>) -> Quality {
         let n = self.len();

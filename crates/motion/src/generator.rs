@@ -1,13 +1,20 @@
-//! A procedural walking generator: clips of any length from a handful of gait parameters,
-//! deterministic, with planted feet. It is the default motion source of every stage.
+//! A procedural walking generator: clips of any length from a walking command that may change
+//! over time, deterministic, with planted feet. It is the default motion source of every stage.
 //!
-//! The root follows the commanded planar velocity (forward, sideways, in the heading frame)
-//! and turn rate. Each foot alternates stance (planted: it does not move at all) and swing
-//! (a smooth arc from one footprint to the next, lifted `step_height`). A footprint is placed
-//! where the hip will be at the middle of that stance, so the body passes over it. The pelvis
-//! bobs twice per gait cycle and sways toward the stance foot, the legs are solved with
-//! two-bone IK (knees point along the foot), and the arms swing opposite to the legs. The
-//! result is a set of landmarks, retargeted by the same code as captured motion.
+//! A [`Schedule`] says what the walker is told at each instant (forward and sideways speed in
+//! the heading frame, turn rate, step frequency), held from key times and blended smoothly into
+//! the next. [`GaitParams`] is one constant command; [`WanderParams`] draws a long walk whose
+//! command changes every 1.5-4 s: faster, slower, backward, sideways, turning, stopping.
+//!
+//! The root path and the gait phase are integrated from the schedule. Each foot alternates
+//! stance (planted: it does not move at all) and swing (an arc from one footprint to the next,
+//! lifted `step_height` and bowed outward, carried along in the turning root frame so it never
+//! cuts across the other leg). A footprint is placed where its hip will be at the middle of that
+//! stance, widened by a quarter of the sideways travel of a gait cycle so that a sidestep's
+//! closing foot stays clear of the other. The pelvis bobs twice per gait cycle and sways toward
+//! the stance foot, the legs are solved with two-bone IK (knees point along the foot), the trunk
+//! and arms are built in the heading frame (the arms swing opposite to the legs). The result is a
+//! set of landmarks, retargeted by the same code as captured motion.
 
 use crate::MotionError;
 use crate::clip::Clip;
@@ -103,6 +110,151 @@ impl GaitParams {
             duration,
         }
     }
+
+    /// The constant schedule of these parameters.
+    pub fn schedule(&self) -> Schedule {
+        let command =
+            Command { speed: self.speed, lateral: self.lateral, turn_rate: self.turn_rate, step_frequency: self.step_frequency };
+        Schedule {
+            keys: vec![(0.0, command)],
+            heading: self.heading,
+            step_height: self.step_height,
+            arm_swing: self.arm_swing,
+            duration: self.duration,
+        }
+    }
+}
+
+/// A wandering walk: one long clip whose command changes smoothly every 1.5-4 s across the
+/// range a person walks (forward 0.3-1.6 m/s, backward to -0.7 m/s, sidesteps up to 0.3 m/s,
+/// turns up to 0.8 rad/s while walking, short stops). The seed picks the walk.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WanderParams {
+    pub seed: u64,
+    /// Clip length, s.
+    pub duration: f64,
+}
+
+/// Seconds a wandering command is held, drawn uniformly.
+pub const WANDER_HOLD: [f64; 2] = [1.5, 4.0];
+
+impl WanderParams {
+    pub fn validate(&self) -> Result<(), MotionError> {
+        if !(self.duration.is_finite() && (WANDER_HOLD[0]..=600.0).contains(&self.duration)) {
+            return Err(MotionError::Invalid(format!(
+                "wander: duration must be {}-600 s, not {}",
+                WANDER_HOLD[0], self.duration
+            )));
+        }
+        Ok(())
+    }
+
+    /// The walk's commands: the first held from t = 0, a new one every 1.5-4 s.
+    pub fn schedule(&self) -> Schedule {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(self.seed);
+        let mut keys = vec![(0.0, Command::walk(rng.random_range(0.6..1.2), 0.0, 0.0))];
+        let mut t = rng.random_range(WANDER_HOLD[0]..WANDER_HOLD[1]);
+        while t < self.duration {
+            keys.push((t, Command::sample(&mut rng)));
+            t += rng.random_range(WANDER_HOLD[0]..WANDER_HOLD[1]);
+        }
+        Schedule {
+            keys,
+            heading: 0.0,
+            step_height: rng.random_range(0.06..0.1),
+            arm_swing: rng.random_range(0.2..0.45),
+            duration: self.duration,
+        }
+    }
+}
+
+/// What the walker is told at one instant. Velocities are in the heading frame.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Command {
+    /// Forward speed, m/s (negative walks backward).
+    pub speed: f64,
+    /// Sideways speed, m/s (positive to the left).
+    pub lateral: f64,
+    /// Turn rate, rad/s (positive to the left).
+    pub turn_rate: f64,
+    /// Steps per second.
+    pub step_frequency: f64,
+}
+
+impl Command {
+    /// A command with the step frequency people choose for its speed (longer and quicker steps
+    /// as they walk faster).
+    pub fn walk(speed: f64, lateral: f64, turn_rate: f64) -> Self {
+        let step_frequency = (1.5 + 0.5 * speed.hypot(lateral)).clamp(1.5, 2.4);
+        Self { speed, lateral, turn_rate, step_frequency }
+    }
+
+    /// One command of a wandering walk: forward (often turning), backward, sidestepping, or
+    /// a stop.
+    fn sample(rng: &mut impl Rng) -> Self {
+        let r: f64 = rng.random();
+        let sign = |rng: &mut dyn rand::RngCore| if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+        if r < 0.35 {
+            let turn = if rng.random_bool(0.4) { rng.random_range(-0.8..0.8) } else { 0.0 };
+            Self::walk(rng.random_range(0.3..1.6), 0.0, turn)
+        } else if r < 0.55 {
+            Self::walk(rng.random_range(0.3..1.0), 0.0, sign(rng) * rng.random_range(0.4..0.8))
+        } else if r < 0.75 {
+            let turn = if rng.random_bool(0.3) { rng.random_range(-0.3..0.3) } else { 0.0 };
+            Self::walk(-rng.random_range(0.25..0.7), 0.0, turn)
+        } else if r < 0.92 {
+            Self::walk(rng.random_range(-0.1..0.2), sign(rng) * rng.random_range(0.15..0.3), 0.0)
+        } else {
+            Self::walk(0.0, 0.0, 0.0)
+        }
+    }
+
+    fn lerp(self, other: Self, s: f64) -> Self {
+        let mix = |a: f64, b: f64| a + (b - a) * s;
+        Self {
+            speed: mix(self.speed, other.speed),
+            lateral: mix(self.lateral, other.lateral),
+            turn_rate: mix(self.turn_rate, other.turn_rate),
+            step_frequency: mix(self.step_frequency, other.step_frequency),
+        }
+    }
+
+    /// How much the walker moves: 0 standing (the feet stay planted), 1 walking or turning.
+    fn activity(&self) -> f64 {
+        (self.speed.hypot(self.lateral) / 0.2 + self.turn_rate.abs() / 0.3).min(1.0)
+    }
+}
+
+/// A walking command over time, and the style of the walk.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Schedule {
+    /// Commands and the times they take over (the first at 0), in order.
+    pub keys: Vec<(f64, Command)>,
+    /// Initial heading, rad.
+    pub heading: f64,
+    /// Swing foot clearance, m.
+    pub step_height: f64,
+    /// Arm swing amplitude at the shoulder, rad.
+    pub arm_swing: f64,
+    /// Clip length, s.
+    pub duration: f64,
+}
+
+/// Seconds over which one command blends into the next (a smoothstep).
+const BLEND: f64 = 1.0;
+
+impl Schedule {
+    /// The command at time `t`: the last key's, blended in from the one before over [`BLEND`].
+    pub fn at(&self, t: f64) -> Command {
+        let k = self.keys.partition_point(|&(time, _)| time <= t).max(1) - 1;
+        let (time, current) = self.keys[k];
+        if k == 0 {
+            return current;
+        }
+        let s = ((t - time) / BLEND).clamp(0.0, 1.0);
+        self.keys[k - 1].1.lerp(current, s * s * (3.0 - 2.0 * s))
+    }
 }
 
 /// Fraction of a gait cycle a foot is in the air.
@@ -113,22 +265,84 @@ const PELVIS_HEIGHT: f64 = 0.905;
 const BOB: f64 = 0.012;
 /// Fraction of the full leg length the hip-to-ankle distance may reach.
 const REACH: f64 = 0.98;
+/// How much wider than the hips the feet are planted, m: the pelvis sways over the stance foot,
+/// and with feet right under the hips the thighs, 2 cm apart at rest, would brush.
+const STANCE_WIDEN: f64 = 0.025;
+/// How far the swing foot bows outward at mid-swing, m.
+const SWING_OUT: f64 = 0.03;
 
-/// The planar root path: position and heading at time `t`, integrated in closed form.
-fn root_path(p: &GaitParams, t: f64) -> (DVec3, f64) {
-    let yaw = p.heading + p.turn_rate * t;
-    let v = DVec3::new(p.speed, p.lateral, 0.0);
-    let pos = if p.turn_rate.abs() < 1e-9 {
-        yaw_quat(p.heading) * v * t
-    } else {
-        // Integral of R(h0 + w s) v ds from 0 to t.
-        let (w, h0) = (p.turn_rate, p.heading);
-        let (s0, c0, s1, c1) = (h0.sin(), h0.cos(), yaw.sin(), yaw.cos());
-        let ix = DVec3::new(s1 - s0, -(c1 - c0), 0.0) / w; // integral of (cos, sin)
-        let iy = DVec3::new(c1 - c0, s1 - s0, 0.0) / w; // integral of (-sin, cos)
-        ix * v.x + iy * v.y
-    };
-    (pos, yaw)
+/// The root path and gait phase integrated from a schedule on a fine grid (midpoint rule),
+/// with margins before 0 and after the end so footprints of steps that straddle them exist.
+struct Plan<'a> {
+    schedule: &'a Schedule,
+    start: f64,
+    pos: Vec<DVec3>,
+    yaw: Vec<f64>,
+    /// Gait cycles since t = 0.
+    phase: Vec<f64>,
+}
+
+/// Integration step of the plan, s (8 per control step).
+const PLAN_DT: f64 = 1.0 / 240.0;
+/// Margin of the plan on either side of the clip, s.
+const PLAN_MARGIN: f64 = 4.0;
+
+impl<'a> Plan<'a> {
+    fn new(schedule: &'a Schedule) -> Self {
+        let before = (PLAN_MARGIN / PLAN_DT).round() as usize;
+        let n = before + ((schedule.duration + PLAN_MARGIN) / PLAN_DT).ceil() as usize + 1;
+        let mut plan = Plan {
+            schedule,
+            start: -(before as f64) * PLAN_DT,
+            pos: vec![DVec3::ZERO; n],
+            yaw: vec![schedule.heading; n],
+            phase: vec![0.0; n],
+        };
+        let advance = |plan: &mut Plan, from: usize, to: usize| {
+            let dt = if to > from { PLAN_DT } else { -PLAN_DT };
+            let c = schedule.at(plan.time(from) + 0.5 * dt);
+            let yaw_mid = plan.yaw[from] + 0.5 * dt * c.turn_rate;
+            plan.pos[to] = plan.pos[from] + yaw_quat(yaw_mid) * DVec3::new(c.speed, c.lateral, 0.0) * dt;
+            plan.yaw[to] = plan.yaw[from] + dt * c.turn_rate;
+            plan.phase[to] = plan.phase[from] + 0.5 * dt * c.step_frequency;
+        };
+        for i in before..n - 1 {
+            advance(&mut plan, i, i + 1);
+        }
+        for i in (1..=before).rev() {
+            advance(&mut plan, i, i - 1);
+        }
+        plan
+    }
+
+    fn time(&self, i: usize) -> f64 {
+        self.start + i as f64 * PLAN_DT
+    }
+
+    /// Index and weight of the grid interval holding `t`.
+    fn locate(&self, t: f64) -> (usize, f64) {
+        let x = ((t - self.start) / PLAN_DT).clamp(0.0, (self.pos.len() - 1) as f64);
+        let i = (x.floor() as usize).min(self.pos.len() - 2);
+        (i, x - i as f64)
+    }
+
+    /// Root position and heading at `t`.
+    fn root(&self, t: f64) -> (DVec3, f64) {
+        let (i, w) = self.locate(t);
+        (self.pos[i].lerp(self.pos[i + 1], w), self.yaw[i] + (self.yaw[i + 1] - self.yaw[i]) * w)
+    }
+
+    fn phase(&self, t: f64) -> f64 {
+        let (i, w) = self.locate(t);
+        self.phase[i] + (self.phase[i + 1] - self.phase[i]) * w
+    }
+
+    /// The time at which the gait reaches `phase` (the phase only grows).
+    fn time_of_phase(&self, phase: f64) -> f64 {
+        let i = self.phase.partition_point(|&p| p <= phase).clamp(1, self.phase.len() - 1) - 1;
+        let (a, b) = (self.phase[i], self.phase[i + 1]);
+        self.time(i) + PLAN_DT * ((phase - a) / (b - a)).clamp(0.0, 1.0)
+    }
 }
 
 /// A footprint: where the ankle sits (above the ground) and the foot's heading.
@@ -139,10 +353,14 @@ struct Footprint {
 }
 
 struct Gait<'a> {
-    p: &'a GaitParams,
-    cycle: f64,
+    plan: Plan<'a>,
     hip_width: f64,
     ankle_height: f64,
+}
+
+/// +1 for the left side (0), -1 for the right (1).
+fn side_sign(side: usize) -> f64 {
+    if side == 0 { 1.0 } else { -1.0 }
 }
 
 impl Gait<'_> {
@@ -153,33 +371,41 @@ impl Gait<'_> {
 
     /// Footprint `k` of a foot: the stance that starts at cycle `k` after its swing.
     fn footprint(&self, side: usize, k: i64) -> Footprint {
-        let stance_start = (k as f64 + Self::offset(side) + SWING_FRACTION) * self.cycle;
-        let mid = stance_start + 0.5 * (1.0 - SWING_FRACTION) * self.cycle;
-        let (pos, yaw) = root_path(self.p, mid);
-        let side_sign = if side == 0 { 1.0 } else { -1.0 };
-        let ankle =
-            pos + yaw_quat(yaw) * DVec3::new(0.0, side_sign * self.hip_width, 0.0) + DVec3::Z * self.ankle_height;
+        let mid = k as f64 + Self::offset(side) + SWING_FRACTION + 0.5 * (1.0 - SWING_FRACTION);
+        let t = self.plan.time_of_phase(mid);
+        let (pos, yaw) = self.plan.root(t);
+        let c = self.plan.schedule.at(t);
+        let width = self.hip_width + STANCE_WIDEN + 0.25 * c.lateral.abs() * 2.0 / c.step_frequency;
+        let ankle = pos + yaw_quat(yaw) * DVec3::new(0.0, side_sign(side) * width, 0.0) + DVec3::Z * self.ankle_height;
         Footprint { ankle, yaw }
     }
 
     /// Ankle position and foot heading of a foot at time `t`.
     fn foot(&self, side: usize, t: f64) -> (DVec3, f64) {
-        let phase = t / self.cycle - Self::offset(side);
+        let phase = self.plan.phase(t) - Self::offset(side);
         let k = phase.floor();
         let u = phase - k;
-        let (k, u) = (k as i64, u);
+        let k = k as i64;
         if u >= SWING_FRACTION {
             let f = self.footprint(side, k);
             return (f.ankle, f.yaw);
         }
-        // Swing from footprint k-1 to k: smooth horizontally, a sine bump vertically.
+        // Swing from footprint k-1 to k, interpolated in the moving root frame (so on a turn the
+        // foot follows the path's curve instead of cutting toward the stance leg), bowed outward
+        // and lifted by sine bumps.
         let s = u / SWING_FRACTION;
         let ease = s * s * (3.0 - 2.0 * s);
         let (a, b) = (self.footprint(side, k - 1), self.footprint(side, k));
-        let mut ankle = a.ankle.lerp(b.ankle, ease);
-        ankle.z += self.p.step_height * (PI * s).sin();
-        let yaw = a.yaw + flowmimic_geom::wrap_angle(b.yaw - a.yaw) * ease;
-        (ankle, yaw)
+        let (root, yaw) = self.plan.root(t);
+        let to_local = |p: DVec3| yaw_quat(-yaw) * (p - root);
+        let bump = (PI * s).sin();
+        let activity = self.plan.schedule.at(t).activity();
+        let local = to_local(a.ankle).lerp(to_local(b.ankle), ease)
+            + DVec3::new(0.0, side_sign(side) * SWING_OUT * activity * bump, 0.0);
+        let mut ankle = root + yaw_quat(yaw) * local;
+        ankle.z += self.plan.schedule.step_height * activity * bump;
+        let foot_yaw = a.yaw + flowmimic_geom::wrap_angle(b.yaw - a.yaw) * ease;
+        (ankle, foot_yaw)
     }
 }
 
@@ -194,8 +420,7 @@ fn knee(hip: DVec3, ankle: DVec3, thigh: f64, shin: f64, forward: DVec3) -> DVec
 }
 
 /// Landmarks of a generated walk at 30 Hz.
-pub fn landmarks(p: &GaitParams) -> Result<LandmarkClip, MotionError> {
-    p.validate()?;
+pub fn landmarks(schedule: &Schedule) -> Result<LandmarkClip, MotionError> {
     let specs = bodies();
     let off = |b: usize| DVec3::from_array(specs[b].offset);
     let (thigh, shin) = (off(body::L_KNEE).length(), off(body::L_ANKLE).length());
@@ -204,40 +429,48 @@ pub fn landmarks(p: &GaitParams) -> Result<LandmarkClip, MotionError> {
         Shape::Box { center, half } => half[2] - center[2],
         _ => unreachable!("the foot is a box"),
     };
-    let gait = Gait { p, cycle: 2.0 / p.step_frequency, hip_width: off(body::L_HIP).y, ankle_height };
-    // With flat feet, both must reach the ground in double support, when each ankle is half a
-    // step from the hip: lower the pelvis for long steps (a more bent-knee gait).
-    let half_step = 0.5 * p.speed.hypot(p.lateral) / p.step_frequency;
-    let reach = (REACH * (thigh + shin)).powi(2) - half_step * half_step;
-    let pelvis_height = PELVIS_HEIGHT.min(reach.max(0.0).sqrt() + ankle_height - off(body::L_HIP).z + BOB);
-    let frames = (p.duration * CONTROL_HZ).round() as usize + 1;
+    let gait = Gait { plan: Plan::new(schedule), hip_width: off(body::L_HIP).y, ankle_height };
+    let frames = (schedule.duration * CONTROL_HZ).round() as usize + 1;
     let poses = (0..frames)
         .map(|i| {
             let t = i as f64 / CONTROL_HZ;
-            let (root, yaw) = root_path(p, t);
-            let cycle_phase = TAU * t / gait.cycle;
+            let c = schedule.at(t);
+            let activity = c.activity();
+            let (root, yaw) = gait.plan.root(t);
+            // With flat feet, both must reach the ground in double support, when each ankle is
+            // half a step from the hip: lower the pelvis for long steps (a more bent-knee gait).
+            let half_step = 0.5 * c.speed.hypot(c.lateral) / c.step_frequency;
+            let reach = (REACH * (thigh + shin)).powi(2) - half_step * half_step;
+            let pelvis_height =
+                PELVIS_HEIGHT.min(reach.max(0.0).sqrt() + ankle_height - off(body::L_HIP).z + BOB);
+            let cycle_phase = TAU * gait.plan.phase(t);
             // Bob: highest at mid-stance of either foot; sway toward the stance foot.
-            let bob = BOB * (2.0 * cycle_phase - TAU * (SWING_FRACTION + 0.5 * (1.0 - SWING_FRACTION))).cos();
-            let sway = 0.02 * (cycle_phase - TAU * (SWING_FRACTION + 0.5 * (1.0 - SWING_FRACTION))).cos();
-            let lean = 0.06 * p.speed; // lean into the walk
-            let pelvis_rot = yaw_quat(yaw) * DQuat::from_rotation_y(lean * 0.5);
-            let pelvis = root + DVec3::new(0.0, 0.0, pelvis_height + bob) + yaw_quat(yaw) * DVec3::new(0.0, sway, 0.0);
-            let chest_rot = yaw_quat(yaw) * DQuat::from_rotation_y(lean);
+            let mid_stance = TAU * (SWING_FRACTION + 0.5 * (1.0 - SWING_FRACTION));
+            let bob = activity * BOB * (2.0 * cycle_phase - mid_stance).cos();
+            let sway = activity * 0.02 * (cycle_phase - mid_stance).cos();
+            let lean = 0.06 * c.speed; // lean into the walk
+            let heading = yaw_quat(yaw);
+            let pelvis_rot = heading * DQuat::from_rotation_y(lean * 0.5);
+            let pelvis = root + DVec3::new(0.0, 0.0, pelvis_height + bob) + heading * DVec3::new(0.0, sway, 0.0);
+            let chest_rot = heading * DQuat::from_rotation_y(lean);
             let chest = pelvis + pelvis_rot * (off(body::TORSO) + off(body::SPINE) + off(body::CHEST));
             let neck = chest + chest_rot * off(body::NECK);
             let head = neck + chest_rot * DVec3::new(0.0, 0.0, 0.12);
             let mut pose: Pose = [DVec3::ZERO; NUM_LANDMARKS];
             for side in 0..2 {
-                let sign = if side == 0 { 1.0 } else { -1.0 };
+                let sign = side_sign(side);
                 let hip = pelvis + pelvis_rot * DVec3::new(0.0, sign * gait.hip_width, off(body::L_HIP).z);
                 let (ankle, foot_yaw) = gait.foot(side, t);
                 let forward = yaw_quat(foot_yaw) * DVec3::X;
                 let knee_p = knee(hip, ankle, thigh, shin, forward);
                 let toe = ankle + yaw_quat(foot_yaw) * off(body::L_TOE);
                 // Arms swing with the opposite leg: forward when that leg is behind.
-                let swing = p.arm_swing * (cycle_phase - TAU * Gait::offset(1 - side) - PI * SWING_FRACTION).sin();
-                let shoulder =
-                    chest + chest_rot * (off(body::L_THORAX) + off(body::L_SHOULDER)) * DVec3::new(1.0, sign, 1.0);
+                let swing = activity
+                    * schedule.arm_swing
+                    * (cycle_phase - TAU * Gait::offset(1 - side) - PI * SWING_FRACTION).sin();
+                // Mirror the left side's offsets in the body's own frame, then rotate.
+                let mirror = DVec3::new(1.0, sign, 1.0);
+                let shoulder = chest + chest_rot * ((off(body::L_THORAX) + off(body::L_SHOULDER)) * mirror);
                 let down = chest_rot * DVec3::new(swing.sin(), sign * 0.12, -swing.cos()).normalize();
                 let elbow = shoulder + down * off(body::L_ELBOW).length();
                 let bend = chest_rot * DVec3::new((swing + 0.5).sin(), sign * 0.1, -(swing + 0.5).cos()).normalize();
@@ -260,10 +493,18 @@ pub fn landmarks(p: &GaitParams) -> Result<LandmarkClip, MotionError> {
     Ok(LandmarkClip { fps: CONTROL_HZ, frames: poses })
 }
 
-/// A generated walking clip for the humanoid.
+/// A generated walking clip for the humanoid, one constant command.
 pub fn generate(humanoid: &Arc<Humanoid>, name: &str, p: &GaitParams) -> Result<(Clip, RetargetReport), MotionError> {
+    p.validate()?;
     let source = serde_json::to_string(p).expect("json");
-    retarget(humanoid, &landmarks(p)?, name, &format!("generator {source}"), false)
+    retarget(humanoid, &landmarks(&p.schedule())?, name, &format!("generator {source}"), false)
+}
+
+/// A generated wandering walk (see [`WanderParams`]).
+pub fn wander(humanoid: &Arc<Humanoid>, name: &str, p: &WanderParams) -> Result<(Clip, RetargetReport), MotionError> {
+    p.validate()?;
+    let source = serde_json::to_string(p).expect("json");
+    retarget(humanoid, &landmarks(&p.schedule())?, name, &format!("generator wander {source}"), false)
 }
 
 /// The generated 10 s straight walk at 1 m/s, `walk_straight`: every stage's default clip
@@ -274,7 +515,9 @@ pub fn straight_walk(humanoid: &Arc<Humanoid>) -> Result<Clip, MotionError> {
 }
 
 /// `count` diverse walks from `seed` (the same seed gives the same set).
-pub fn sample_set(count: usize, seed: u64, duration: f64) -> Vec<GaitParams> {
+pub fn sample_set(count: usize, seed: u64, duration: f64) -> Result<Vec<GaitParams>, MotionError> {
+    // Every sampled walk would fail on a bad duration: refuse it before drawing any.
+    GaitParams { duration, ..Default::default() }.validate()?;
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     let mut out = Vec::with_capacity(count);
     while out.len() < count {
@@ -283,5 +526,5 @@ pub fn sample_set(count: usize, seed: u64, duration: f64) -> Vec<GaitParams> {
             out.push(p);
         }
     }
-    out
+    Ok(out)
 }

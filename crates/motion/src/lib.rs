@@ -6,12 +6,14 @@
 
 pub mod bvh;
 pub mod clip;
+pub mod coverage;
 pub mod generator;
 pub mod landmarks;
 pub mod retarget;
 
 pub use clip::{Clip, Quality};
-pub use generator::{GaitParams, generate, straight_walk};
+pub use coverage::Coverage;
+pub use generator::{Command, GaitParams, Schedule, WanderParams, generate, straight_walk, wander};
 
 pub use landmarks::{Units, UpAxis};
 pub use retarget::RetargetReport;

@@ -62,9 +62,13 @@ pub(crate) fn backward(
     for row in dy.chunks_exact(outputs) {
         gb.iter_mut().zip(row).for_each(|(b, g)| *b += g);
     }
-    want_dx.then(|| {
-        let mut dx = vec![0.0; rows * inputs];
-        gemm(rows, outputs, inputs, (dy, outputs as isize, 1), (w, inputs as isize, 1), &mut dx, 0.0);
-        dx
-    })
+    want_dx.then(|| input_grad(dy, rows, w, inputs))
+}
+
+/// `dX = dY W`: the gradient with respect to the layer's input alone.
+pub(crate) fn input_grad(dy: &[f32], rows: usize, w: &[f32], inputs: usize) -> Vec<f32> {
+    let outputs = w.len() / inputs;
+    let mut dx = vec![0.0; rows * inputs];
+    gemm(rows, outputs, inputs, (dy, outputs as isize, 1), (w, inputs as isize, 1), &mut dx, 0.0);
+    dx
 }

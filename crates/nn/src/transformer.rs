@@ -216,8 +216,8 @@ fn layer_norm(x: &[f32], d: usize, gamma: &[f32], beta: &[f32]) -> (Vec<f32>, No
     (y, Norm { xhat, rstd })
 }
 
-/// Accumulates the norm's parameter gradients and returns `dx`.
-fn layer_norm_backward(dy: &[f32], norm: &Norm, gamma: &[f32], gg: &mut [f32], gb: &mut [f32]) -> Vec<f32> {
+/// Accumulates the norm's parameter gradients (gamma, beta) when given and returns `dx`.
+fn layer_norm_backward(dy: &[f32], norm: &Norm, gamma: &[f32], mut params: Option<(&mut [f32], &mut [f32])>) -> Vec<f32> {
     let d = gamma.len();
     let mut dx = vec![0.0; dy.len()];
     for r in 0..norm.rstd.len() {
@@ -227,8 +227,12 @@ fn layer_norm_backward(dy: &[f32], norm: &Norm, gamma: &[f32], gg: &mut [f32], g
             let g = dyr[j] * gamma[j];
             mean_g += g;
             mean_gx += g * xh[j];
-            gg[j] += dyr[j] * xh[j];
-            gb[j] += dyr[j];
+        }
+        if let Some((gg, gb)) = params.as_mut() {
+            for j in 0..d {
+                gg[j] += dyr[j] * xh[j];
+                gb[j] += dyr[j];
+            }
         }
         mean_g /= d as f32;
         mean_gx /= d as f32;
@@ -420,57 +424,91 @@ impl Transformer {
 
     /// Accumulates parameter gradients (layout of `params`) for `d loss / d output`.
     pub fn backward(&self, tape: &Tape, grad_output: &[f32], grads: &mut [f32]) {
+        assert_eq!(grads.len(), self.params.len());
+        self.backward_pass(tape, grad_output, Some(grads));
+    }
+
+    /// The vector-Jacobian product `(d output / d x)^T grad_output` for the input `x` of the
+    /// taped forward pass (`n x tokens x token_dim`). No parameter gradient is formed, so this
+    /// costs about one forward pass (test-time guidance through the network).
+    pub fn input_grad(&self, tape: &Tape, grad_output: &[f32]) -> Vec<f32> {
+        self.backward_pass(tape, grad_output, None).expect("asked for the input gradient")
+    }
+
+    /// The backward pass: parameter gradients into `grads` when given; otherwise only the
+    /// gradient with respect to the input, which it then returns.
+    fn backward_pass(&self, tape: &Tape, grad_output: &[f32], mut grads: Option<&mut [f32]>) -> Option<Vec<f32>> {
         let c = &self.config;
         let (d, l, n) = (c.d_model, c.tokens, tape.n);
         let rows = n * l;
-        assert_eq!(grads.len(), self.params.len());
         let s = &self.slots;
         let mut dh = {
-            let df = self.dense_backward(&s.output, &tape.final_out, grad_output, rows, grads, true);
-            self.norm_backward(&s.ln_out, &df.expect("dx"), &tape.final_norm, grads)
+            let df = self.dense_backward(&s.output, &tape.final_out, grad_output, rows, grads.as_deref_mut(), true);
+            self.norm_backward(&s.ln_out, &df.expect("dx"), &tape.final_norm, grads.as_deref_mut())
         };
         for (b, t) in s.blocks.iter().zip(&tape.blocks).rev() {
             // Feed-forward branch.
-            let mut du = self.dense_backward(&b.ff2, &t.hidden, &dh, rows, grads, true).expect("dx");
+            let mut du = self.dense_backward(&b.ff2, &t.hidden, &dh, rows, grads.as_deref_mut(), true).expect("dx");
             du.iter_mut().zip(&t.pre_gelu).for_each(|(g, &u)| *g *= gelu_grad(u));
-            let dbn = self.dense_backward(&b.ff1, &t.b, &du, rows, grads, true).expect("dx");
-            let dx = self.norm_backward(&b.ln2, &dbn, &t.norm2, grads);
+            let dbn = self.dense_backward(&b.ff1, &t.b, &du, rows, grads.as_deref_mut(), true).expect("dx");
+            let dx = self.norm_backward(&b.ln2, &dbn, &t.norm2, grads.as_deref_mut());
             dh.iter_mut().zip(&dx).for_each(|(a, b)| *a += b);
             // Attention branch.
-            let dattn = self.dense_backward(&b.proj, &t.attended, &dh, rows, grads, true).expect("dx");
+            let dattn = self.dense_backward(&b.proj, &t.attended, &dh, rows, grads.as_deref_mut(), true).expect("dx");
             let dqkv = self.attention_backward(&t.qkv, &t.probs, &dattn, n);
-            let da = self.dense_backward(&b.qkv, &t.a, &dqkv, rows, grads, true).expect("dx");
-            let dx = self.norm_backward(&b.ln1, &da, &t.norm1, grads);
+            let da = self.dense_backward(&b.qkv, &t.a, &dqkv, rows, grads.as_deref_mut(), true).expect("dx");
+            let dx = self.norm_backward(&b.ln1, &da, &t.norm1, grads.as_deref_mut());
             dh.iter_mut().zip(&dx).for_each(|(a, b)| *a += b);
         }
+        let Some(grads) = grads else {
+            // The input projection is the only way back to x.
+            return self.dense_backward(&s.input, &tape.x, &dh, rows, None, true);
+        };
         // Embeddings: input projection, positions, noise level.
-        self.dense_backward(&s.input, &tape.x, &dh, rows, grads, false);
+        self.dense_backward(&s.input, &tape.x, &dh, rows, Some(&mut *grads), false);
         let mut dtemb = vec![0.0; n * d];
         let dpos = &mut grads[s.pos.range()];
         for (r, row) in dh.chunks_exact(d).enumerate() {
             dpos[(r % l) * d..(r % l + 1) * d].iter_mut().zip(row).for_each(|(p, g)| *p += g);
             dtemb[(r / l) * d..(r / l + 1) * d].iter_mut().zip(row).for_each(|(p, g)| *p += g);
         }
-        self.dense_backward(&s.time, &tape.time_features, &dtemb, n, grads, false);
+        self.dense_backward(&s.time, &tape.time_features, &dtemb, n, Some(grads), false);
+        None
     }
 
-    /// Backward of a dense layer whose (weight, bias) are `pair`, accumulating into `grads`.
+    /// Backward of a dense layer whose (weight, bias) are `pair`: accumulates its parameter
+    /// gradients into `grads` when given, returns `dx` when asked.
     fn dense_backward(
         &self,
         pair: &(TensorSlot, TensorSlot),
         x: &[f32],
         dy: &[f32],
         rows: usize,
-        grads: &mut [f32],
+        grads: Option<&mut [f32]>,
         want_dx: bool,
     ) -> Option<Vec<f32>> {
-        let (gw, gb) = pair_mut(grads, pair);
-        dense::backward(x, dy, rows, self.p(&pair.0), pair.0.shape[1], (gw, gb), want_dx)
+        let w = self.p(&pair.0);
+        match grads {
+            Some(grads) => dense::backward(x, dy, rows, w, pair.0.shape[1], pair_mut(grads, pair), want_dx),
+            None => want_dx.then(|| dense::input_grad(dy, rows, w, pair.0.shape[1])),
+        }
     }
 
-    fn norm_backward(&self, pair: &(TensorSlot, TensorSlot), dy: &[f32], norm: &Norm, grads: &mut [f32]) -> Vec<f32> {
-        let (gg, gb) = pair_mut(grads, pair);
-        layer_norm_backward(dy, norm, self.p(&pair.0), gg, gb)
+    fn norm_backward(
+        &self,
+        pair: &(TensorSlot, TensorSlot),
+        dy: &[f32],
+        norm: &Norm,
+        grads: Option<&mut [f32]>,
+    ) -> Vec<f32> {
+        let gamma = self.p(&pair.0);
+        match grads {
+            Some(grads) => {
+                let (gg, gb) = pair_mut(grads, pair);
+                layer_norm_backward(dy, norm, gamma, Some((gg, gb)))
+            }
+            None => layer_norm_backward(dy, norm, gamma, None),
+        }
     }
 }
 
@@ -527,6 +565,31 @@ mod tests {
             }
         }
         assert!(checked > 100);
+    }
+
+    #[test]
+    fn input_gradient_matches_finite_differences() {
+        let net = small();
+        let n = 2;
+        let x: Vec<f32> = (0..n * 3 * 5).map(|i| ((i as f32) * 0.37).sin()).collect();
+        let t = [0.2, 0.7];
+        let u: Vec<f32> = (0..n * 3 * 5).map(|i| ((i as f32) * 0.11).cos()).collect();
+        // The vector-Jacobian product is the gradient of u . f(x).
+        let dot = |x: &[f32]| -> f64 { net.predict(x, &t, n).iter().zip(&u).map(|(y, u)| f64::from(y * u)).sum() };
+        let grad = net.input_grad(&net.forward(&x, &t, n), &u);
+        let eps = 1e-2;
+        for k in 0..x.len() {
+            let (mut plus, mut minus) = (x.clone(), x.clone());
+            plus[k] += eps;
+            minus[k] -= eps;
+            let fd = (dot(&plus) - dot(&minus)) / (2.0 * f64::from(eps));
+            let g = f64::from(grad[k]);
+            assert!((fd - g).abs() < 2e-2 * (1.0 + fd.abs()), "x[{k}]: fd {fd} vs {g}");
+        }
+        // The same with the parameter-gradient pass taken as well: it does not change dx.
+        let mut grads = vec![0.0; net.num_params()];
+        net.backward(&net.forward(&x, &t, n), &u, &mut grads);
+        assert_eq!(grad, net.input_grad(&net.forward(&x, &t, n), &u));
     }
 
     #[test]

@@ -206,6 +206,26 @@ impl Env {
         centre[2] - extent
     }
 
+    /// Pairs of the humanoid's bodies whose geoms touch or overlap in the current pose (body
+    /// indices in our order, lower first), by MuJoCo's own collision detection. Pairs the model
+    /// excludes (neighbours that overlap in the rest pose) are never reported.
+    pub fn self_contacts(&mut self) -> Vec<(usize, usize)> {
+        self.data.collision();
+        let body_of = |g: i32| self.humanoid.model().geom_bodyid()[g as usize] as usize;
+        let mut pairs: Vec<(usize, usize)> = self
+            .data
+            .contact()
+            .iter()
+            .map(|c| (body_of(c.geom[0]), body_of(c.geom[1])))
+            // Body 0 is MuJoCo's world (the ground); ours are numbered from 1.
+            .filter(|&(a, b)| a > 0 && b > 0)
+            .map(|(a, b)| (a.min(b) - 1, a.max(b) - 1))
+            .collect();
+        pairs.sort_unstable();
+        pairs.dedup();
+        pairs
+    }
+
     /// Height of the head body, metres.
     pub fn head_height(&self) -> f64 {
         self.data.xpos()[body::HEAD + 1][2]

@@ -188,6 +188,26 @@ pub struct IterationLog {
     pub network_seconds: f32,
     pub update_seconds: f32,
     pub steps_per_second: f32,
+    /// The same per clip, in training order, so that one failing clip cannot hide behind the
+    /// average.
+    pub clips: Vec<ClipLog>,
+}
+
+/// One clip's share of an iteration.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct ClipLog {
+    pub steps: usize,
+    pub episodes: usize,
+    pub failures: usize,
+    /// Mean root-relative body position error over the clip's steps, m.
+    pub body_pos_error: f32,
+}
+
+impl ClipLog {
+    /// Failures per minute of tracked motion (0 when nothing fails).
+    pub fn failures_per_minute(&self) -> f32 {
+        self.failures as f32 / (self.steps.max(1) as f32 / (60.0 * flowmimic_sim::CONTROL_HZ as f32))
+    }
 }
 
 impl IterationLog {
@@ -322,7 +342,11 @@ impl Trainer {
             dones: Vec::new(),
             last_values: Vec::new(),
         };
-        let mut log = IterationLog { iteration: self.iteration + 1, ..Default::default() };
+        let mut log = IterationLog {
+            iteration: self.iteration + 1,
+            clips: vec![ClipLog::default(); self.references.len()],
+            ..Default::default()
+        };
         let (mut physics, mut network) = (0.0f64, 0.0f64);
         let (mut reward_sum, mut error_sum, mut ended_lengths) = (0.0f64, 0.0f64, 0usize);
         let mut raw = vec![0.0f32; e * OBS_DIM];
@@ -357,6 +381,9 @@ impl Trainer {
                 // O(1-10), the scale rsl_rl's value clipping (0.2) is meant for.
                 let mut reward = total * REWARD_DT;
                 error_sum += f64::from(terms.body_pos_error);
+                let clip_log = &mut log.clips[self.clip_of(i)];
+                clip_log.steps += 1;
+                clip_log.body_pos_error += terms.body_pos_error;
                 self.episode_steps[i] += 1;
                 if *ending == Ending::ClipEnd {
                     // A time limit, not a failure: bootstrap with the value estimate.
@@ -365,11 +392,13 @@ impl Trainer {
                 rollout.rewards.push(reward);
                 rollout.dones.push(*ending != Ending::None);
                 if *ending != Ending::None {
+                    let c = self.clip_of(i);
                     log.episodes += 1;
+                    log.clips[c].episodes += 1;
                     ended_lengths += self.episode_steps[i];
                     if matches!(ending, Ending::Failed | Ending::Diverged) {
                         log.failures += 1;
-                        let c = self.clip_of(i);
+                        log.clips[c].failures += 1;
                         self.samplers[c].record_failure(self.trackers[i].frame);
                     }
                     self.reset_env(i)?;
@@ -404,6 +433,9 @@ impl Trainer {
         log.env_steps = self.env_steps;
         log.mean_reward = (reward_sum / n) as f32;
         log.body_pos_error = (error_sum / n) as f32;
+        for c in &mut log.clips {
+            c.body_pos_error /= c.steps.max(1) as f32;
+        }
         log.episode_length = if log.episodes > 0 { ended_lengths as f32 / log.episodes as f32 } else { 0.0 };
         log.update = stats;
         log.physics_seconds = physics as f32;
@@ -613,6 +645,7 @@ impl Checkpoint {
 /// Tracking quality over whole-clip episodes with the deterministic policy.
 #[derive(Clone, Debug, Serialize)]
 pub struct EvalReport {
+    pub clip: String,
     pub episodes: usize,
     /// Episodes that reached the end of the clip without a tracking failure.
     pub success_rate: f64,
@@ -678,6 +711,7 @@ pub fn evaluate(
         }
     }
     Ok(EvalReport {
+        clip: clip.name.clone(),
         episodes,
         success_rate: successes as f64 / episodes as f64,
         body_pos_error: error_sum / error_n.max(1) as f64,

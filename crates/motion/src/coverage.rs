@@ -1,0 +1,85 @@
+//! What walking a set of motions covers: forward speed, sideways speed and yaw rate, each
+//! averaged over a second (about a gait cycle, so the pelvis's sway averages out), and the
+//! fractions that walk backward, turn and sidestep. Clips and rollout datasets are measured
+//! alike, from the root's planar path.
+
+use flowmimic_geom::{DVec3, wrap_angle, yaw_quat};
+use flowmimic_sim::CONTROL_HZ;
+
+/// Forward speed below which a step walks backward, m/s.
+pub const BACKWARD: f64 = -0.2;
+/// Yaw rate above which a step turns, rad/s.
+pub const TURNING: f64 = 0.3;
+/// Sideways speed above which a step sidesteps, m/s.
+pub const SIDESTEP: f64 = 0.15;
+
+/// Forward and sideways speed (m/s, in the step's heading frame) and yaw rate (rad/s) of a
+/// planar root path sampled at the control rate, `[x, y, heading]` per step, each averaged
+/// over the second around the step (shorter at the ends).
+pub fn walking_velocities(path: &[[f64; 3]]) -> Vec<[f64; 3]> {
+    let n = path.len();
+    let half = (CONTROL_HZ / 2.0).round() as usize;
+    (0..n)
+        .map(|t| {
+            let (a, b) = (t.saturating_sub(half), (t + half).min(n - 1));
+            if a == b {
+                return [0.0; 3];
+            }
+            let dt = (b - a) as f64 / CONTROL_HZ;
+            let d = DVec3::new(path[b][0] - path[a][0], path[b][1] - path[a][1], 0.0);
+            let local = yaw_quat(-path[t][2]) * d / dt;
+            [local.x, local.y, wrap_angle(path[b][2] - path[a][2]) / dt]
+        })
+        .collect()
+}
+
+/// Coverage of a set of walking velocities.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct Coverage {
+    pub steps: usize,
+    /// Fractions of steps with forward speed < [`BACKWARD`], |yaw rate| > [`TURNING`],
+    /// |sideways speed| > [`SIDESTEP`].
+    pub backward: f64,
+    pub turning: f64,
+    pub sidestep: f64,
+    /// Ranges seen: forward speed, sideways speed, yaw rate (min, max).
+    pub ranges: [(f64, f64); 3],
+    /// The velocities themselves, for histograms.
+    #[serde(skip)]
+    pub velocities: Vec<[f64; 3]>,
+}
+
+impl Coverage {
+    pub fn of(velocities: Vec<[f64; 3]>) -> Self {
+        let n = velocities.len().max(1) as f64;
+        let share = |f: &dyn Fn(&[f64; 3]) -> bool| velocities.iter().filter(|v| f(v)).count() as f64 / n;
+        let mut ranges = [(f64::MAX, f64::MIN); 3];
+        for v in &velocities {
+            for (r, x) in ranges.iter_mut().zip(v) {
+                *r = (r.0.min(*x), r.1.max(*x));
+            }
+        }
+        Self {
+            steps: velocities.len(),
+            backward: share(&|v| v[0] < BACKWARD),
+            turning: share(&|v| v[2].abs() > TURNING),
+            sidestep: share(&|v| v[1].abs() > SIDESTEP),
+            ranges,
+            velocities,
+        }
+    }
+
+    /// Fraction of steps per bin of one quantity (0 forward, 1 sideways, 2 yaw rate) on
+    /// `[lo, hi)`, as (bin centre, fraction).
+    pub fn histogram(&self, quantity: usize, lo: f64, hi: f64, bins: usize) -> Vec<(f64, f64)> {
+        let mut counts = vec![0.0; bins];
+        for v in &self.velocities {
+            let b = ((v[quantity] - lo) / (hi - lo) * bins as f64).floor();
+            if b >= 0.0 && (b as usize) < bins {
+                counts[b as usize] += 1.0;
+            }
+        }
+        let total = self.velocities.len().max(1) as f64;
+        counts.iter().enumerate().map(|(b, c)| (lo + (b as f64 + 0.5) * (hi - lo) / bins as f64, c / total)).collect()
+    }
+}

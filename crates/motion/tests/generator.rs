@@ -1,0 +1,129 @@
+//! Invariants of the walking generator, checked on many random walks: the upper body faces
+//! where the pelvis faces, the legs never touch each other (the simulator's own collision
+//! detection on the reference poses), planted feet do not slide, and the root follows the
+//! command.
+
+use flowmimic_geom::{heading, wrap_angle};
+use flowmimic_motion::generator::{self, Schedule};
+use flowmimic_motion::{Clip, Coverage, GaitParams, WanderParams, clip::CONTACT_HEIGHT, generate, wander};
+use flowmimic_sim::skeleton::body;
+use flowmimic_sim::{CONTROL_HZ, Humanoid, SimConfig};
+use rand::{Rng, SeedableRng};
+use std::sync::Arc;
+
+const LEFT_LEG: [usize; 4] = [body::L_HIP, body::L_KNEE, body::L_ANKLE, body::L_TOE];
+const RIGHT_LEG: [usize; 4] = [body::R_HIP, body::R_KNEE, body::R_ANKLE, body::R_TOE];
+
+/// Walks from the whole range: any speed forward and back, sideways, turn rate, heading and
+/// step frequency the generator accepts, plus wandering walks.
+fn random_walks(h: &Arc<Humanoid>) -> Vec<(Clip, Schedule)> {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+    let mut walks = Vec::new();
+    while walks.len() < 24 {
+        let p = GaitParams {
+            speed: rng.random_range(-0.8..1.6),
+            lateral: rng.random_range(-0.3..0.3),
+            turn_rate: rng.random_range(-0.8..0.8),
+            heading: rng.random_range(-3.1..3.1),
+            step_frequency: rng.random_range(1.5..2.4),
+            duration: 4.0,
+            ..Default::default()
+        };
+        if p.validate().is_ok() {
+            walks.push((generate(h, "random", &p).unwrap().0, p.schedule()));
+        }
+    }
+    for seed in 1..=2 {
+        let p = WanderParams { seed, duration: 30.0 };
+        walks.push((wander(h, "wander", &p).unwrap().0, p.schedule()));
+    }
+    walks
+}
+
+#[test]
+fn generated_walks_keep_their_invariants() {
+    let h = Humanoid::new(SimConfig::default()).unwrap();
+    let mut env = h.env();
+    for (n, (clip, schedule)) in random_walks(&h).iter().enumerate() {
+        let what = format!("walk {n} ({:?})", schedule.keys.first().unwrap().1);
+        let velocities = clip.walking_velocities();
+        let mut stance_speeds = Vec::new();
+        for (t, k) in clip.bodies.iter().enumerate() {
+            // The chest and head face within 25 degrees of the pelvis.
+            let pelvis = heading(k.rot[body::PELVIS]);
+            for b in [body::CHEST, body::HEAD] {
+                let off = wrap_angle(heading(k.rot[b]) - pelvis).to_degrees();
+                assert!(off.abs() < 25.0, "{what}: frame {t}: body {b} faces {off:.0} deg from the pelvis");
+            }
+            // The legs never touch each other.
+            env.reset(&clip.qpos[t], &clip.qvel[t]).unwrap();
+            for (a, b) in env.self_contacts() {
+                let crosses = (LEFT_LEG.contains(&a) && RIGHT_LEG.contains(&b))
+                    || (RIGHT_LEG.contains(&a) && LEFT_LEG.contains(&b));
+                assert!(!crosses, "{what}: frame {t}: bodies {a} and {b} touch");
+            }
+            // Planted feet do not slide: the touching part of a foot on the ground is still.
+            for (side, [ankle, toe]) in [[body::L_ANKLE, body::L_TOE], [body::R_ANKLE, body::R_TOE]].iter().enumerate() {
+                let [heel_z, toe_z] = env.foot_bottoms()[side];
+                if heel_z.min(toe_z) < CONTACT_HEIGHT {
+                    let part = if toe_z < heel_z { *toe } else { *ankle };
+                    stance_speeds.push(k.lin_vel[part].truncate().length());
+                }
+            }
+        }
+        let mean = stance_speeds.iter().sum::<f64>() / stance_speeds.len() as f64;
+        assert!(mean < 0.05, "{what}: feet on the ground move at {mean:.3} m/s on average");
+        // The root follows the command (both averaged over the same second).
+        let half = (CONTROL_HZ / 2.0) as usize;
+        for t in half..clip.len() - half {
+            let mut command = [0.0; 3];
+            for s in t - half..=t + half {
+                let c = schedule.at(s as f64 / CONTROL_HZ);
+                for (m, x) in command.iter_mut().zip([c.speed, c.lateral, c.turn_rate]) {
+                    *m += x / (2 * half + 1) as f64;
+                }
+            }
+            let v = velocities[t];
+            let err = [(v[0] - command[0]).abs(), (v[1] - command[1]).abs(), (v[2] - command[2]).abs()];
+            assert!(
+                err[0] < 0.12 && err[1] < 0.12 && err[2] < 0.1,
+                "{what}: frame {t}: walks {v:?} for the command {command:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn wandering_walks_cover_what_people_do_and_differ_by_seed() {
+    let h = Humanoid::new(SimConfig::default()).unwrap();
+    let walk = |seed| wander(&h, "w", &WanderParams { seed, duration: 40.0 }).unwrap().0;
+    let (a, b) = (walk(1), walk(2));
+    assert_eq!(a.len(), 1201);
+    assert_ne!(a.qpos, b.qpos, "different seeds, different walks");
+    assert_eq!(a.qpos, walk(1).qpos, "the same seed, the same walk");
+    // Commands change every 1.5-4 s.
+    let keys = WanderParams { seed: 1, duration: 40.0 }.schedule().keys;
+    for pair in keys.windows(2) {
+        let hold = pair[1].0 - pair[0].0;
+        assert!((1.5..=4.0).contains(&hold), "a command held {hold} s");
+    }
+    // Four walks together walk backward, turn and sidestep.
+    let clips: Vec<Clip> = (1..=4).map(walk).collect();
+    let cov = Coverage::of(clips.iter().flat_map(|c| c.walking_velocities()).collect());
+    assert!(cov.backward > 0.1 && cov.turning > 0.15 && cov.sidestep > 0.1, "{cov:?}");
+    assert!(cov.ranges[0].1 > 1.3 && cov.ranges[0].0 < -0.5, "forward speeds {:?}", cov.ranges[0]);
+    for q in clips.iter().map(|c| c.quality(&h)) {
+        assert!(q.penetration_max < 0.01 && q.airborne == 0.0, "{q:?}");
+    }
+}
+
+#[test]
+fn impossible_walks_are_refused_quickly() {
+    // A duration no walk can have is refused before any walk is drawn (it used to loop forever).
+    assert!(generator::sample_set(4, 0, 0.1).is_err());
+    assert!(generator::sample_set(4, 0, 1e6).is_err());
+    let h = Humanoid::new(SimConfig::default()).unwrap();
+    for duration in [0.5, f64::NAN, 1e9] {
+        assert!(wander(&h, "w", &WanderParams { seed: 1, duration }).is_err(), "duration {duration}");
+    }
+}
