@@ -133,6 +133,10 @@ pub enum EvalCommand {
         common: Common,
         #[arg(long, value_delimiter = ',', default_value = "1,2,5,10,20")]
         nfe: Vec<usize>,
+        /// Measure the guided control step at this scale (joystick schedule; the gradient as
+        /// --gradient says) instead of unguided walking.
+        #[arg(long)]
+        guided: Option<f32>,
     },
 }
 
@@ -670,10 +674,16 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
             );
             finish(out, &models, (exp.name, exp.title), &notes, &summaries, table)?;
         }
-        EvalCommand::Latency { nfe, .. } => {
+        EvalCommand::Latency { nfe, guided, .. } => {
+            let scale = guided.unwrap_or(0.0);
+            let points: Vec<Point> = nfe.iter().map(|&n| point(n, scale)).collect();
             let exp = Experiment {
-                name: "latency",
-                title: "Latency per control step (batch 1)",
+                name: if guided.is_some() { "latency_guided" } else { "latency" },
+                title: if guided.is_some() {
+                    "Latency per guided control step (batch 1)"
+                } else {
+                    "Latency per control step (batch 1)"
+                },
                 columns: &["model_ms", "physics_ms", "total_ms"],
                 plot: "total_ms",
                 x_label: "NFE",
@@ -684,7 +694,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 &exp,
                 out,
                 &models,
-                (&by_nfe(&nfe), 1, true),
+                (&points, 1, true),
                 |m, point| {
                     let (model_ms, physics_ms) = protocols::latency(&m.bench(humanoid, &clip), point, 3.0)?;
                     Ok(vec![vec![model_ms, physics_ms, model_ms + physics_ms]])
@@ -701,9 +711,15 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                     )
                 },
             )?;
-            let notes = "Median over 3 s of unguided walking with one environment; model = one sampling call (all NFE steps), \
-                         physics = one 30 Hz step. Paper: FM about 4x faster than DDPM for the same robustness (NFE 5 vs 20).";
-            finish(out, &models, (exp.name, exp.title), notes, &summaries, table)?;
+            let walking = match guided {
+                Some(w) => format!("walking guided at w = {w} on the joystick schedule ({gradient:?} gradient)"),
+                None => "unguided walking".into(),
+            };
+            let notes = format!(
+                "Median over 3 s of {walking} with one environment; model = one sampling call (all NFE steps), \
+                 physics = one 30 Hz step. Paper: FM about 4x faster than DDPM for the same robustness (NFE 5 vs 20)."
+            );
+            finish(out, &models, (exp.name, exp.title), &notes, &summaries, table)?;
         }
     }
     Ok(())

@@ -47,11 +47,12 @@ fn stages_connect_through_their_files() {
     );
     assert!(resumed.contains("resumed") && resumed.contains("[    3/3]"), "{resumed}");
     let eval = ok(&dir, &["track", "eval", "run", "--episodes", "2"]);
-    assert!(eval.contains("\"success_rate\"") && eval.contains("\"clip_steps\": 45"), "{eval}");
+    assert!(eval.contains("\"clip\":\"w\"") && eval.contains("\"clip_steps\":45"), "{eval}");
     let collect = ok(&dir, &["collect", "run", "-o", "data"]);
     assert!(collect.contains("steps/s") && collect.contains("fall rate"), "{collect}");
     let inspect = ok(&dir, &["dataset", "inspect", "data"]);
     assert!(inspect.contains("feature ranges") && dir.join("data/coverage_root_speed.png").exists(), "{inspect}");
+    assert!(inspect.contains("backward") && dir.join("data/coverage_yaw_rate.png").exists(), "{inspect}");
     let stats = ok(&dir, &["dataset", "stats", "data", "--history", "2", "--horizon", "3"]);
     assert!(stats.contains("windows") && dir.join("data/stats-N2-H3.safetensors").exists(), "{stats}");
     trajectory_model_trains_resumes_and_drives(&dir);

@@ -244,9 +244,12 @@ pub fn generated_features(
         .collect())
 }
 
-/// Median model and physics milliseconds per control step, one environment walking unguided.
+/// Median model and physics milliseconds per control step, one environment walking: unguided,
+/// or with a guidance scale, on the joystick protocol's schedule (the cost gradient, through the
+/// network when the point says so, included in the model's time).
 pub fn latency(bench: &Bench, point: Point, seconds: f64) -> Result<(f64, f64), ControlError> {
-    let r = bench.run(vec![Task::walk()], point, seconds, false, |_| {})?;
+    let task = if point.scale > 0.0 { Task::joystick_eval() } else { Task::walk() };
+    let r = bench.run(vec![task], point, seconds, false, |_| {})?;
     let (model_ms, physics_ms) = r.median_ms();
     Ok((f64::from(model_ms), f64::from(physics_ms)))
 }

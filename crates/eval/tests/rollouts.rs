@@ -19,6 +19,7 @@ fn rollout(steps: usize, yaw_rate: f64, turn: f64, fall: usize) -> Rollout {
             horizon: 1,
             guidance_scale: 0.0,
             guidance_steps: (0, 1),
+            gradient: Default::default(),
             tasks: vec![task.clone()],
             seed: 0,
             start: "test".into(),
