@@ -460,7 +460,9 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     let by_nfe = |nfe: &[usize]| nfe.iter().map(|&n| point(n, 0.0)).collect::<Vec<_>>();
     let by_scale = |scales: &[f32], nfe: usize| scales.iter().map(|&w| point(nfe, w)).collect::<Vec<_>>();
     match cmd {
-        EvalCommand::Guidance { scales, nfe, samples, .. } => guidance_effect(&models, humanoid, &clip, &scales, nfe, samples, out)?,
+        EvalCommand::Guidance { scales, nfe, samples, .. } => {
+            guidance_effect(&models, humanoid, &clip, &scales, nfe, samples, out)?
+        }
         EvalCommand::Survival { nfe, seconds, .. } => {
             let trials = trials(50, 8);
             let seconds = seconds.unwrap_or(if common.quick { 10.0 } else { 1000.0 / flowmimic_sim::CONTROL_HZ });

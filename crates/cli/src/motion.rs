@@ -28,6 +28,14 @@ pub enum MotionCommand {
         /// Mark the clips cyclic (loopable); DeepMimic files say so themselves.
         #[arg(long)]
         cyclic: bool,
+        /// Print which joint became which landmark, and how sure that is (structure and name
+        /// agree, structure only, name only, forced).
+        #[arg(long)]
+        print_map: bool,
+        /// A TOML file forcing joints for landmarks, e.g. `L_Hip = "UpperLeg_L"`, `R_Toe =
+        /// "Foot_R/end"` (a joint's End Site); the rest is found as usual.
+        #[arg(long)]
+        map: Option<PathBuf>,
     },
     /// Generate walking clips procedurally: one from the gait flags, `--count` diverse ones, or
     /// `--wander`ing walks whose command changes every 1.5-4 s (forward 0.3-1.6 m/s, backward to
@@ -147,7 +155,7 @@ fn clip_path(out: &Path, name: &str) -> PathBuf {
 
 pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     match cmd {
-        MotionCommand::Import { files, out, units, up, cyclic } => {
+        MotionCommand::Import { files, out, units, up, cyclic, print_map, map } => {
             let units = match units.as_str() {
                 "auto" => None,
                 u => Some(Units::parse(u).with_context(|| format!("unknown unit '{u}' (auto, m, cm, mm, in, cmu)"))?),
@@ -158,7 +166,14 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 "z" => Some(UpAxis::Z),
                 other => bail!("unknown up axis '{other}' (auto, y, z)"),
             };
-            let options = ImportOptions { units, up, cyclic: cyclic.then_some(true), name: None };
+            let map = match map {
+                None => None,
+                Some(file) => Some(
+                    toml::from_str(&flowmimic_io::read_to_string(&file)?)
+                        .with_context(|| format!("{}: a map is lines of LANDMARK = \"joint name\"", file.display()))?,
+                ),
+            };
+            let options = ImportOptions { units, up, cyclic: cyclic.then_some(true), name: None, map };
             let mut clips = Vec::new();
             for file in &files {
                 let im = flowmimic_motion::import(humanoid, file, &options)?;
@@ -177,6 +192,9 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                     100.0 * im.report.clamped,
                     if im.clip.cyclic { ", cyclic" } else { "" },
                 );
+                if print_map {
+                    im.joint_map.iter().for_each(|line| println!("  {line}"));
+                }
                 clips.push(im.clip);
             }
             header();

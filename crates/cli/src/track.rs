@@ -139,8 +139,7 @@ fn print_clip_summary(names: &[String], rows: &[String], iterations: usize) {
         })
         .collect();
     per_clip.sort_by(|a, b| b.0.total_cmp(&a.0));
-    let line: Vec<String> =
-        per_clip.iter().map(|(f, e, n)| format!("{n} {f:.1}/min {:.1} cm", 100.0 * e)).collect();
+    let line: Vec<String> = per_clip.iter().map(|(f, e, n)| format!("{n} {f:.1}/min {:.1} cm", 100.0 * e)).collect();
     eprintln!("\rfailures per minute of motion, body error: {}", line.join(", "));
 }
 

@@ -139,7 +139,10 @@ fn guidance_gradients_have_the_length_of_their_error_in_normalised_units() {
     let length = |g: &[f32]| g.iter().zip(&std).map(|(g, s)| (g * s).powi(2)).sum::<f32>().sqrt();
     for (cost, error) in [
         (Sum::default().with(1.0, Joystick::new(layout, 1.5, 0.0).unwrap()), joystick.error(&tau)),
-        (Sum::default().with(2.0, Reach::new(layout, body::R_HAND, [0.3, -0.5, 1.4]).unwrap()), 2.0 * reach.error(&tau)),
+        (
+            Sum::default().with(2.0, Reach::new(layout, body::R_HAND, [0.3, -0.5, 1.4]).unwrap()),
+            2.0 * reach.error(&tau),
+        ),
     ] {
         let mut g = vec![0.0; layout.len()];
         cost.guidance_grad(&tau, &std, &mut g);

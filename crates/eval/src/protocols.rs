@@ -268,7 +268,12 @@ pub struct GuidanceEffect {
     pub error_guided: f64,
 }
 
-pub fn guidance_effect(bench: &Bench, task: &Task, point: Point, samples: usize) -> Result<GuidanceEffect, ControlError> {
+pub fn guidance_effect(
+    bench: &Bench,
+    task: &Task,
+    point: Point,
+    samples: usize,
+) -> Result<GuidanceEffect, ControlError> {
     use flowmimic_control::{Cost, History, Layout};
     use flowmimic_geom::CharFrame;
     use flowmimic_model::TaskGuidance;

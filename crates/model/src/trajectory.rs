@@ -295,7 +295,8 @@ mod tests {
     /// A small network with random weights everywhere, so every path of the pullback counts.
     fn small_net() -> TrajectoryNet {
         let layout = TokenLayout { state_dim: 3, action_dim: 2, spec: WindowSpec { history: 1, horizon: 2 } };
-        let config = ModelConfig { history: 1, horizon: 2, d_model: 8, heads: 2, layers: 2, d_ff: 12, time_features: 4 };
+        let config =
+            ModelConfig { history: 1, horizon: 2, d_model: 8, heads: 2, layers: 2, d_ff: 12, time_features: 4 };
         let mut rng = StdRng::seed_from_u64(4);
         let mut net = Transformer::new(config.transformer(&layout), &mut rng);
         net.params.iter_mut().for_each(|p| *p += 0.4 * rng.random::<f32>() - 0.2);

@@ -75,7 +75,8 @@ impl Network for Toy {
             };
             let (plus, minus) = (shifted(eps), shifted(-eps));
             for i in 0..n {
-                pulled[i * DIM + j] = (0..DIM).map(|o| u[i * DIM + o] * (plus[i * DIM + o] - minus[i * DIM + o]) / (2.0 * eps)).sum();
+                pulled[i * DIM + j] =
+                    (0..DIM).map(|o| u[i * DIM + o] * (plus[i * DIM + o] - minus[i * DIM + o]) / (2.0 * eps)).sum();
             }
         }
         (y, pulled)

@@ -177,8 +177,7 @@ impl Clip {
 
     /// The walking each frame carries out (see [`crate::coverage::walking_velocities`]).
     pub fn walking_velocities(&self) -> Vec<[f64; 3]> {
-        let path: Vec<[f64; 3]> =
-            self.qpos.iter().map(|q| [q[0], q[1], flowmimic_geom::heading(quat_of(q))]).collect();
+        let path: Vec<[f64; 3]> = self.qpos.iter().map(|q| [q[0], q[1], flowmimic_geom::heading(quat_of(q))]).collect();
         crate::coverage::walking_velocities(&path)
     }
 

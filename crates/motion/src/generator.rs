@@ -113,8 +113,12 @@ impl GaitParams {
 
     /// The constant schedule of these parameters.
     pub fn schedule(&self) -> Schedule {
-        let command =
-            Command { speed: self.speed, lateral: self.lateral, turn_rate: self.turn_rate, step_frequency: self.step_frequency };
+        let command = Command {
+            speed: self.speed,
+            lateral: self.lateral,
+            turn_rate: self.turn_rate,
+            step_frequency: self.step_frequency,
+        };
         Schedule {
             keys: vec![(0.0, command)],
             heading: self.heading,
@@ -441,8 +445,7 @@ pub fn landmarks(schedule: &Schedule) -> Result<LandmarkClip, MotionError> {
             // half a step from the hip: lower the pelvis for long steps (a more bent-knee gait).
             let half_step = 0.5 * c.speed.hypot(c.lateral) / c.step_frequency;
             let reach = (REACH * (thigh + shin)).powi(2) - half_step * half_step;
-            let pelvis_height =
-                PELVIS_HEIGHT.min(reach.max(0.0).sqrt() + ankle_height - off(body::L_HIP).z + BOB);
+            let pelvis_height = PELVIS_HEIGHT.min(reach.max(0.0).sqrt() + ankle_height - off(body::L_HIP).z + BOB);
             let cycle_phase = TAU * gait.plan.phase(t);
             // Bob: highest at mid-stance of either foot; sway toward the stance foot.
             let mid_stance = TAU * (SWING_FRACTION + 0.5 * (1.0 - SWING_FRACTION));

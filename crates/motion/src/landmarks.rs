@@ -5,24 +5,26 @@
 //! positions rather than source-local rotations means no rest-pose alignment of the source's
 //! joint frames is needed (LAFAN1's rest pose, for one, is not a standing pose).
 //!
-//! Joint map (names compared case-insensitively, ignoring `_`, `-`, spaces and a `prefix:`):
+//! Which BVH joint gives which landmark is read from the skeleton's structure, names
+//! confirming ([`crate::joint_map`]). What the structure finds on the two common families:
 //!
-//! | landmark  | LAFAN1       | CMU (cgspeed) | other names tried                    |
-//! |-----------|--------------|---------------|--------------------------------------|
-//! | L_Hip     | LeftUpLeg    | LeftUpLeg     | LeftHip, L_Hip, LeftThigh            |
-//! | L_Knee    | LeftLeg      | LeftLeg       | LeftKnee, L_Knee, LeftShin           |
-//! | L_Ankle   | LeftFoot     | LeftFoot      | LeftAnkle, L_Ankle                   |
-//! | L_Toe     | LeftToe      | LeftToeBase   | LeftToes, L_Toe (else the foot's End Site) |
-//! | Chest     | Spine2       | Spine1        | Chest, Spine3, Spine                 |
-//! | Neck      | Neck         | Neck1         | Neck                                 |
-//! | Head      | Head         | Head          |                                      |
-//! | L_Shoulder| LeftArm      | LeftArm       | LeftUpperArm, L_Shoulder             |
-//! | L_Elbow   | LeftForeArm  | LeftForeArm   | LeftElbow, LeftLowerArm, L_Elbow     |
-//! | L_Wrist   | LeftHand     | LeftHand      | LeftWrist, L_Wrist                   |
+//! | landmark  | LAFAN1       | CMU (cgspeed) |
+//! |-----------|--------------|---------------|
+//! | L_Hip     | LeftUpLeg    | LeftUpLeg     |
+//! | L_Knee    | LeftLeg      | LeftLeg       |
+//! | L_Ankle   | LeftFoot     | LeftFoot      |
+//! | L_Toe     | LeftToe      | LeftToeBase   |
+//! | Chest     | Spine2       | Spine1        |
+//! | Neck      | Neck         | Neck1         |
+//! | Head      | Head         | Head          |
+//! | L_Shoulder| LeftArm      | LeftArm       |
+//! | L_Elbow   | LeftForeArm  | LeftForeArm   |
+//! | L_Wrist   | LeftHand     | LeftHand      |
 //!
-//! and the same with Right/R_. DeepMimic clips have their own loader ([`deepmimic`]).
+//! and the same on the right. DeepMimic clips have their own loader ([`deepmimic`]).
 
 use crate::bvh::Bvh;
+use crate::joint_map::{ForcedMap, JointMap, Source, map_joints, normalise};
 use flowmimic_geom::{DQuat, DVec3};
 
 /// The landmarks, in the order of [`LandmarkClip::frames`] entries.
@@ -166,88 +168,6 @@ impl UpAxis {
     }
 }
 
-fn normalise(name: &str) -> String {
-    let name = name.rsplit(':').next().unwrap_or(name);
-    name.chars().filter(|c| !matches!(c, '_' | '-' | ' ' | '.')).flat_map(char::to_lowercase).collect()
-}
-
-/// Candidate joint names for each landmark, left side; right side swaps the prefixes.
-fn candidates(landmark: Landmark) -> Vec<String> {
-    use Landmark::*;
-    let side = |names: &[&str], right: bool| -> Vec<String> {
-        names
-            .iter()
-            .map(|n| match (right, n.strip_prefix("left")) {
-                (false, _) => n.to_string(),
-                (true, Some(rest)) => format!("right{rest}"),
-                (true, None) => format!("r{}", &n[1..]),
-            })
-            .collect()
-    };
-    let (names, right): (&[&str], bool) = match landmark {
-        LHip | RHip => (&["leftupleg", "lefthip", "lhip", "leftthigh"], landmark == RHip),
-        LKnee | RKnee => (&["leftleg", "leftknee", "lknee", "leftshin", "leftlowerleg"], landmark == RKnee),
-        LAnkle | RAnkle => (&["leftfoot", "leftankle", "lankle"], landmark == RAnkle),
-        LToe | RToe => (&["lefttoebase", "lefttoe", "lefttoes", "ltoe"], landmark == RToe),
-        LShoulder | RShoulder => (&["leftarm", "leftupperarm", "lshoulder"], landmark == RShoulder),
-        LElbow | RElbow => (&["leftforearm", "leftelbow", "leftlowerarm", "lelbow"], landmark == RElbow),
-        LWrist | RWrist => (&["lefthand", "leftwrist", "lwrist"], landmark == RWrist),
-        Chest => return ["chest", "spine3", "spine2", "spine1", "spine"].map(String::from).to_vec(),
-        Neck => return ["neck1", "neck"].map(String::from).to_vec(),
-        Head => return vec!["head".into()],
-    };
-    side(names, right)
-}
-
-/// Where each landmark is read from in a BVH skeleton.
-#[derive(Clone, Copy, Debug)]
-enum Source {
-    Joint(usize),
-    /// The End Site below a joint (a toe when the file has no toe joint).
-    EndSite(usize),
-}
-
-const ALL_LANDMARKS: [Landmark; NUM_LANDMARKS] = {
-    use Landmark::*;
-    [
-        LHip, RHip, LKnee, RKnee, LAnkle, RAnkle, LToe, RToe, Chest, Neck, Head, LShoulder, RShoulder, LElbow, RElbow,
-        LWrist, RWrist,
-    ]
-};
-
-fn map_joints(bvh: &Bvh) -> Result<[Source; NUM_LANDMARKS], LandmarkError> {
-    let names: Vec<String> = bvh.joints.iter().map(|j| normalise(&j.name)).collect();
-    let find = |cands: &[String]| cands.iter().find_map(|c| names.iter().position(|n| n == c));
-    let mut out = [Source::Joint(0); NUM_LANDMARKS];
-    for (i, &l) in ALL_LANDMARKS.iter().enumerate() {
-        let cands = candidates(l);
-        out[i] = match find(&cands) {
-            Some(j) => Source::Joint(j),
-            None => {
-                // A toe may be only the End Site of the foot.
-                let ankle = if l == Landmark::LToe {
-                    Some(Landmark::LAnkle)
-                } else if l == Landmark::RToe {
-                    Some(Landmark::RAnkle)
-                } else {
-                    None
-                };
-                match ankle.and_then(|a| find(&candidates(a))).filter(|&a| bvh.joints[a].end_site.is_some()) {
-                    Some(a) => Source::EndSite(a),
-                    None => {
-                        return Err(LandmarkError::MissingJoint {
-                            landmark: LANDMARK_NAMES[i],
-                            tried: cands.join(", "),
-                            joints: bvh.joints.iter().map(|j| j.name.as_str()).collect::<Vec<_>>().join(", "),
-                        });
-                    }
-                }
-            }
-        };
-    }
-    Ok(out)
-}
-
 /// The skeleton family, for reporting.
 pub fn bvh_family(bvh: &Bvh) -> &'static str {
     let names: Vec<String> = bvh.joints.iter().map(|j| normalise(&j.name)).collect();
@@ -257,7 +177,7 @@ pub fn bvh_family(bvh: &Bvh) -> &'static str {
     } else if bvh.joints.len() == 22 && has("lefttoe") && has("spine2") {
         "LAFAN1"
     } else {
-        "generic (name-based map)"
+        "generic"
     }
 }
 
@@ -268,15 +188,22 @@ pub struct BvhReading {
     pub units: Units,
     pub up: UpAxis,
     pub clip: LandmarkClip,
+    /// Which joint became which landmark, and how sure that is.
+    pub map: JointMap,
 }
 
-/// Landmarks of a BVH file. `units` and `up` are detected when `None`.
-pub fn from_bvh(bvh: &Bvh, units: Option<Units>, up: Option<UpAxis>) -> Result<BvhReading, LandmarkError> {
-    let map = map_joints(bvh)?;
+/// Landmarks of a BVH file. `units` and `up` are detected when `None`; `map` forces joints.
+pub fn from_bvh(
+    bvh: &Bvh,
+    units: Option<Units>,
+    up: Option<UpAxis>,
+    map: Option<&ForcedMap>,
+) -> Result<BvhReading, LandmarkError> {
+    let joint_map = map_joints(bvh, map)?;
     let raw: Vec<Pose> = (0..bvh.frames())
         .map(|f| {
             let (pos, rot) = bvh.global_pose(f);
-            map.map(|s| match s {
+            joint_map.sources.map(|s| match s {
                 Source::Joint(j) => pos[j],
                 Source::EndSite(j) => pos[j] + rot[j] * bvh.joints[j].end_site.unwrap_or_default(),
             })
@@ -295,7 +222,8 @@ pub fn from_bvh(bvh: &Bvh, units: Option<Units>, up: Option<UpAxis>) -> Result<B
     let up = up.unwrap_or_else(|| detect_up(&raw));
     let (scale, turn) = (units.metres(), up.to_z_up());
     let frames = raw.iter().map(|p| p.map(|v| turn * (v * scale))).collect();
-    Ok(BvhReading { family: bvh_family(bvh), units, up, clip: LandmarkClip { fps: 1.0 / bvh.frame_time, frames } })
+    let clip = LandmarkClip { fps: 1.0 / bvh.frame_time, frames };
+    Ok(BvhReading { family: bvh_family(bvh), units, up, clip, map: joint_map })
 }
 
 /// Up is the axis along which the head sits above the ankles, on average over the clip.
@@ -416,9 +344,7 @@ mod tests {
     }
 
     #[test]
-    fn names_normalise_and_right_candidates_mirror_left() {
+    fn names_normalise() {
         assert_eq!(normalise("mixamorig:Left_Up-Leg"), "leftupleg");
-        assert_eq!(candidates(Landmark::RHip), ["rightupleg", "righthip", "rhip", "rightthigh"]);
-        assert_eq!(candidates(Landmark::RShoulder), ["rightarm", "rightupperarm", "rshoulder"]);
     }
 }

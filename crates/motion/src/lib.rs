@@ -8,6 +8,7 @@ pub mod bvh;
 pub mod clip;
 pub mod coverage;
 pub mod generator;
+pub mod joint_map;
 pub mod landmarks;
 pub mod retarget;
 
@@ -50,6 +51,8 @@ pub struct ImportOptions {
     pub cyclic: Option<bool>,
     /// Clip name; the file stem by default.
     pub name: Option<String>,
+    /// Joints forced for landmarks (BVH only; see [`joint_map::ForcedMap`]).
+    pub map: Option<joint_map::ForcedMap>,
 }
 
 /// What [`import`] found and did.
@@ -63,6 +66,8 @@ pub struct Imported {
     pub source_fps: f64,
     /// Leading frames dropped (an artificial T-pose, as CMU's cgspeed files start with).
     pub dropped_frames: usize,
+    /// For BVH files: which joint became which landmark and how sure that is, a line each.
+    pub joint_map: Vec<String>,
 }
 
 /// Whether both arms are horizontal: the pose of a T-pose calibration frame, never of walking.
@@ -81,10 +86,15 @@ pub fn import(humanoid: &Arc<Humanoid>, path: &Path, options: &ImportOptions) ->
         .clone()
         .unwrap_or_else(|| path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "clip".into()));
     let is_bvh = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("bvh"));
+    let mut joint_map = Vec::new();
     let (mut source, family, units, up, mut cyclic): (LandmarkClip, String, Option<Units>, UpAxis, bool) = if is_bvh {
         let bvh = bvh::Bvh::parse(&text).map_err(|source| MotionError::Bvh { path: path.into(), source })?;
-        let reading =
-            landmarks::from_bvh(&bvh, options.units, options.up).map_err(|e| MotionError::file(path, e.to_string()))?;
+        let reading = landmarks::from_bvh(&bvh, options.units, options.up, options.map.as_ref())
+            .map_err(|e| MotionError::file(path, e.to_string()))?;
+        joint_map = reading.map.describe(&bvh);
+        if let Some(why) = &reading.map.note {
+            joint_map.push(format!("(the structure could not be read: {why}; names alone)"));
+        }
         (reading.clip, reading.family.to_string(), Some(reading.units), reading.up, false)
     } else {
         let dm = landmarks::deepmimic::parse(&text).map_err(|e| MotionError::file(path, e.to_string()))?;
@@ -96,5 +106,5 @@ pub fn import(humanoid: &Arc<Humanoid>, path: &Path, options: &ImportOptions) ->
     cyclic = options.cyclic.unwrap_or(cyclic);
     let origin = format!("{} ({family})", path.display());
     let (clip, report) = retarget::retarget(humanoid, &source, &name, &origin, cyclic)?;
-    Ok(Imported { clip, report, family, units, up, source_fps: source.fps, dropped_frames })
+    Ok(Imported { clip, report, family, units, up, source_fps: source.fps, dropped_frames, joint_map })
 }

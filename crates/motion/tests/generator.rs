@@ -63,7 +63,8 @@ fn generated_walks_keep_their_invariants() {
                 assert!(!crosses, "{what}: frame {t}: bodies {a} and {b} touch");
             }
             // Planted feet do not slide: the touching part of a foot on the ground is still.
-            for (side, [ankle, toe]) in [[body::L_ANKLE, body::L_TOE], [body::R_ANKLE, body::R_TOE]].iter().enumerate() {
+            for (side, [ankle, toe]) in [[body::L_ANKLE, body::L_TOE], [body::R_ANKLE, body::R_TOE]].iter().enumerate()
+            {
                 let [heel_z, toe_z] = env.foot_bottoms()[side];
                 if heel_z.min(toe_z) < CONTACT_HEIGHT {
                     let part = if toe_z < heel_z { *toe } else { *ankle };

@@ -217,7 +217,12 @@ fn layer_norm(x: &[f32], d: usize, gamma: &[f32], beta: &[f32]) -> (Vec<f32>, No
 }
 
 /// Accumulates the norm's parameter gradients (gamma, beta) when given and returns `dx`.
-fn layer_norm_backward(dy: &[f32], norm: &Norm, gamma: &[f32], mut params: Option<(&mut [f32], &mut [f32])>) -> Vec<f32> {
+fn layer_norm_backward(
+    dy: &[f32],
+    norm: &Norm,
+    gamma: &[f32],
+    mut params: Option<(&mut [f32], &mut [f32])>,
+) -> Vec<f32> {
     let d = gamma.len();
     let mut dx = vec![0.0; dy.len()];
     for r in 0..norm.rstd.len() {
