@@ -60,7 +60,19 @@ impl Config {
         let what = file.map_or_else(|| format!("preset {preset}"), |p| p.display().to_string());
         let config: Config =
             toml::Value::Table(table).try_into().with_context(|| format!("{what}: invalid settings"))?;
+        config.validate().map_err(|e| anyhow::anyhow!("{what}: {e}"))?;
         Ok(config)
+    }
+
+    /// Every value in range, so that no stage meets an impossible one.
+    fn validate(&self) -> std::result::Result<(), String> {
+        if !(1..=1000).contains(&self.sim.substeps) {
+            return Err(format!("sim.substeps is {}; it must be 1-1000", self.sim.substeps));
+        }
+        self.track.validate().map_err(|e| e.to_string())?;
+        self.collect.validate()?;
+        self.model.validate()?;
+        self.train.validate()
     }
 }
 
@@ -78,6 +90,20 @@ mod tests {
         let path = dir.join("mine.toml");
         std::fs::write(&path, "[sim]\nsubsteps = 6\n").unwrap();
         assert_eq!(Config::load("cpu", Some(&path)).unwrap().sim.substeps, 6);
+        // Values are checked, not only keys.
+        for (bad, key) in [
+            ("[model]\nheads = 0\n", "model.heads"),
+            ("[model]\nheads = 3\n", "multiple of model.heads"),
+            ("[model]\nd_model = 1099511627776\n", "model.d_model"),
+            ("[train]\nddpm_steps = 0\n", "DDPM"),
+            ("[track]\nhidden = [0]\n", "hidden"),
+            ("[collect]\nnoise = [[-0.1, 4]]\n", "sigma"),
+            ("[track]\nclip = -0.2\n", "positive"),
+        ] {
+            std::fs::write(&path, bad).unwrap();
+            let err = format!("{:#}", Config::load("cpu", Some(&path)).unwrap_err());
+            assert!(err.contains("mine.toml") && err.contains(key), "{bad}: {err}");
+        }
         std::fs::write(&path, "[sim]\nsubstep = 6\n").unwrap();
         let err = format!("{:#}", Config::load("cpu", Some(&path)).unwrap_err());
         assert!(err.contains("mine.toml") && err.contains("substep"), "{err}");

@@ -14,6 +14,7 @@ use flowmimic_eval::{frechet_distance, gaussian, mean_std};
 use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::{Humanoid, STATE_DIM};
+use sha2::{Digest, Sha256};
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -145,6 +146,9 @@ struct Labelled {
     label: String,
     dir: PathBuf,
     model: TrajectoryModel,
+    /// SHA-256 of the model's weights and statistics: stored results are keyed by it, so a
+    /// retrained model in the same folder is evaluated anew.
+    content: String,
 }
 
 impl Labelled {
@@ -161,7 +165,12 @@ fn load_models(specs: &[String]) -> Result<Vec<Labelled>> {
         .map(|s| {
             let (label, dir) = s.split_once('=').with_context(|| format!("--model {s}: use LABEL=DIR"))?;
             let model = crate::run::load_model(Path::new(dir))?;
-            Ok(Labelled { label: label.to_string(), dir: dir.into(), model })
+            let mut h = Sha256::new();
+            for file in [flowmimic_model::train::MODEL_FILE, flowmimic_model::train::STATS_FILE] {
+                h.update(flowmimic_io::read(&Path::new(dir).join(file))?);
+            }
+            let content = format!("{:x}", h.finalize());
+            Ok(Labelled { label: label.to_string(), dir: dir.into(), model, content })
         })
         .collect()
 }
@@ -193,22 +202,27 @@ impl Sweep {
         Self { path, columns: columns.to_vec(), rows }
     }
 
-    fn key(m: &Labelled, point: Point) -> String {
+    /// The point's key: the model (label, and a hash of its content and the protocol's
+    /// settings: episode length, start clip, reference dataset), and the sampler settings.
+    fn key(m: &Labelled, settings: &str, point: Point) -> String {
         let h = m.model.layout().spec.horizon;
         let (nfe, w, k, seed) = (point.nfe, point.scale, point.execute, point.seed);
         let g = serde_json::to_string(&point.gradient).expect("json");
-        format!("{},{},{h},{nfe},{w},{},{k},{seed}", m.label, m.model.objective.name(), g.trim_matches('"'))
+        let inputs = format!("{:x}", Sha256::digest(format!("{}\0{settings}", m.content)));
+        let model = format!("{}@{}", m.label, &inputs[..12]);
+        format!("{model},{},{h},{nfe},{w},{},{k},{seed}", m.model.objective.name(), g.trim_matches('"'))
     }
 
     /// The point's rows: stored ones when complete, else computed by `run` and stored.
     fn point(
         &mut self,
         m: &Labelled,
+        settings: &str,
         point: Point,
         trials: usize,
         run: impl FnOnce() -> Result<Vec<Vec<f64>>>,
     ) -> Result<Vec<Vec<f64>>> {
-        let key = Self::key(m, point);
+        let key = Self::key(m, settings, point);
         if let Some(rows) = self.rows.get(&key).filter(|r| r.len() == trials) {
             eprintln!("{key}: reusing {} stored trials from {}", rows.len(), self.path.display());
             return Ok(rows.clone());
@@ -371,6 +385,8 @@ type Rows = Result<Vec<Vec<f64>>>;
 /// plotted against the swept value, and the Markdown table's header.
 struct Experiment {
     name: &'static str,
+    /// What else determines the results (episode length, start clip, reference data).
+    settings: String,
     title: &'static str,
     columns: &'static [&'static str],
     plot: &'static str,
@@ -403,7 +419,7 @@ fn sweep(
         let (mut line, mut band, mut fell) = (Vec::new(), Vec::new(), Vec::new());
         for &point in points {
             eprintln!("{}: {} NFE {} w {} ({trials} trials)", exp.name, m.label, point.nfe, point.scale);
-            let rows = stored.point(m, point, trials, || run(m, point))?;
+            let rows = stored.point(m, &exp.settings, point, trials, || run(m, point))?;
             let s = summary(m, point, &rows, exp.columns);
             let (mean, std) = (s.mean[exp.plot], s.std[exp.plot]);
             line.push((x_of(&point), mean));
@@ -459,6 +475,21 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     let point = |nfe: usize, scale: f32| Point { nfe, scale, execute, seed, gradient };
     let by_nfe = |nfe: &[usize]| nfe.iter().map(|&n| point(n, 0.0)).collect::<Vec<_>>();
     let by_scale = |scales: &[f32], nfe: usize| scales.iter().map(|&w| point(nfe, w)).collect::<Vec<_>>();
+    // Trials, episode lengths and targets are fixed by each protocol; what else can change
+    // the results goes into the stored points' key.
+    let settings = match &cmd {
+        EvalCommand::Survival { seconds, .. } => {
+            format!("clip {} {}; seconds {seconds:?}; quick {}", clip.name, clip.len(), common.quick)
+        }
+        EvalCommand::Quality { dataset, .. } => format!(
+            "clip {} {}; dataset {}; quick {}",
+            clip.name,
+            clip.len(),
+            Dataset::open(dataset).map(|d| d.shards_key()).unwrap_or_default(),
+            common.quick
+        ),
+        _ => format!("clip {} {}", clip.name, clip.len()),
+    };
     match cmd {
         EvalCommand::Guidance { scales, nfe, samples, .. } => {
             guidance_effect(&models, humanoid, &clip, &scales, nfe, samples, out)?
@@ -469,6 +500,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
             let steps = (seconds * flowmimic_sim::CONTROL_HZ).round() as usize;
             let exp = Experiment {
                 name: "survival",
+                settings: settings.clone(),
                 title: "Survival against NFE (paper Fig. 2)",
                 columns: &["steps"],
                 plot: "steps",
@@ -510,6 +542,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
             let trials = trials(10, 2);
             let exp = Experiment {
                 name: "joystick",
+                settings: settings.clone(),
                 title: "Joystick tracking against guidance (paper Fig. 3)",
                 columns: &["velocity_rmse", "yaw_rate_rmse", "fell"],
                 plot: "velocity_rmse",
@@ -552,6 +585,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
             let trials = trials(20, 4);
             let exp = Experiment {
                 name: "reach",
+                settings: settings.clone(),
                 title: "Hand reaching against guidance (paper Fig. 4)",
                 columns: &["mean", "rms", "min", "fell"],
                 plot: "mean",
@@ -594,6 +628,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
             let trials = trials(20, 4);
             let exp = Experiment {
                 name: "compose",
+                settings: settings.clone(),
                 title: "Composition: waypoint and reach",
                 columns: &["success", "pelvis_min", "hand_min", "fell"],
                 plot: "success",
@@ -644,6 +679,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
             let floor = frechet_distance(&am, &a_s, &bm, &bs);
             let exp = Experiment {
                 name: "quality",
+                settings: settings.clone(),
                 title: "Motion quality (Fréchet distance to the data)",
                 columns: &["frechet"],
                 plot: "frechet",
@@ -681,6 +717,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
             let points: Vec<Point> = nfe.iter().map(|&n| point(n, scale)).collect();
             let exp = Experiment {
                 name: if guided.is_some() { "latency_guided" } else { "latency" },
+                settings: settings.clone(),
                 title: if guided.is_some() {
                     "Latency per guided control step (batch 1)"
                 } else {

@@ -180,8 +180,7 @@ pub fn start_clip(humanoid: &Arc<Humanoid>, file: Option<&Path>) -> Result<Clip>
 }
 
 pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
-    let model =
-        TrajectoryModel::load(&args.model).with_context(|| format!("loading model {}", args.model.display()))?;
+    let model = load_model(&args.model)?;
     let task = args.task()?;
     let control = args.control()?;
     let clip = start_clip(humanoid, args.clip.as_deref())?;

@@ -9,7 +9,7 @@ use flowmimic_viz::viewer::{self, ViewData};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-/// A clip or one environment of a rollout, told apart by the file name.
+/// A clip or one environment of a rollout, told apart by the file's `format` metadata.
 enum Source {
     Clip(Clip),
     Rollout(Rollout, usize),
@@ -18,7 +18,8 @@ enum Source {
 fn open(humanoid: &Arc<Humanoid>, file: &Path, env: usize) -> Result<(Source, String)> {
     let name = file.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     let stem = name.trim_end_matches(".safetensors").to_string();
-    if name.ends_with(".clip.safetensors") {
+    let format = flowmimic_io::tensors::TensorFile::open(file)?.meta("format")?.to_string();
+    if format == flowmimic_motion::clip::FORMAT {
         return Ok((Source::Clip(Clip::load(humanoid, file)?), stem));
     }
     let rollout = Rollout::load(file)?;

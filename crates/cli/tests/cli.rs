@@ -121,12 +121,27 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     }
     assert_eq!(std::fs::read_to_string(dir.join("eval/survival.csv")).unwrap().lines().count(), 1 + 2 * 2 * 2);
     assert!(ok(dir, &survival).contains("reusing 2 stored trials"));
+    // Another episode length is another experiment: nothing stored is reused for it.
+    let longer: Vec<&str> = survival.iter().map(|a| if *a == "0.5" { "0.6" } else { a }).collect();
+    assert!(!ok(dir, &longer).contains("reusing"), "a stored result answered another episode length");
+    // The guidance effect on the executed action, both ways of taking the gradient.
+    let text = ok(dir, &["eval", "guidance", "--model", "fm=fm", "--scales", "3", "--samples", "2", "-o", "eval"]);
+    assert!(
+        text.contains("through-network") && text.contains("cost-only") && dir.join("eval/guidance.json").exists(),
+        "{text}"
+    );
     let text = ok(dir, &["eval", "joystick", "--model", "fm=fm", "--scales", "0,10", "--trials", "1", "-o", "eval"]);
     assert!(text.contains("velocity RMSE") && dir.join("eval/joystick.png").exists(), "{text}");
     let (refused, text) = flowmimic(dir, &["run", "--model", "fm", "--task", "reach", "--target", "1,NaN,1"]);
     assert!(!refused && text.contains("NaN"), "{text}");
     let (refused, text) = flowmimic(dir, &["run", "--model", "fm", "--task", "joystick", "--schedule", "3:9,0,0"]);
     assert!(!refused && text.contains("joystick speed"), "{text}");
+    // A run too short for one control step is refused, not written as an empty rollout.
+    let (refused, text) =
+        flowmimic(dir, &["run", "--model", "fm", "--seconds", "0.01", "-o", "empty.rollout.safetensors"]);
+    assert!(!refused && text.contains("duration") && !dir.join("empty.rollout.safetensors").exists(), "{text}");
+    // A clip is told from a rollout by its format, whatever its file name.
+    viewer_serves_and_draws(dir, "clips/w.clip.safetensors");
 }
 
 #[test]

@@ -106,8 +106,12 @@ pub fn run(
     if !config.guidance_scale.is_finite() || config.guidance_scale < 0.0 {
         return Err(ControlError::BadCommand { what: "guidance scale", value: f64::from(config.guidance_scale) });
     }
-    if !(config.seconds.is_finite() && config.seconds > 0.0) {
-        return Err(ControlError::BadCommand { what: "duration (s)", value: config.seconds });
+    // At least one control step, at most a day.
+    if !(config.seconds.is_finite() && config.seconds * CONTROL_HZ >= 0.5 && config.seconds <= 86_400.0) {
+        return Err(ControlError::BadCommand {
+            what: "duration (s; one control step, 1/30 s, to a day)",
+            value: config.seconds,
+        });
     }
     for task in &tasks {
         task.validate()?;

@@ -147,10 +147,21 @@ impl Rollout {
         let [e, t1, nq] = shape[..] else {
             return Err(file.error(format!("tensor 'qpos' has shape {shape:?}, expected E x (T+1) x nq")));
         };
-        if e != envs || t1 == 0 {
-            return Err(file.error(format!("tensor 'qpos' has shape {shape:?} for {envs} tasks")));
+        if e != envs || t1 < 2 || envs == 0 {
+            return Err(file.error(format!(
+                "tensor 'qpos' has shape {shape:?} for {envs} tasks: a rollout has at least one environment and one step"
+            )));
+        }
+        if nq != 76 {
+            return Err(file.error(format!("tensor 'qpos' has {nq} coordinates per pose; the humanoid has 76")));
         }
         let t = t1 - 1;
+        let survived: Vec<usize> = file
+            .f32("steps", &[envs])?
+            .iter()
+            .map(|&s| if s.is_finite() && s >= 0.0 && s as usize <= t { Ok(s as usize) } else { Err(s) })
+            .collect::<Result<_, _>>()
+            .map_err(|s| file.error(format!("tensor 'steps' holds {s}, outside the rollout's 0-{t} steps")))?;
         Ok(Self {
             envs,
             steps: t,
@@ -160,7 +171,7 @@ impl Rollout {
             body_pos: file.f32("body_pos", &[envs, t + 1, NUM_BODIES, 3])?,
             action: file.f32("action", &[envs, t, NUM_DOFS])?,
             command: file.f32("command", &[envs, t, COMMAND_DIM])?,
-            survived: file.f32("steps", &[envs])?.iter().map(|&s| s as usize).collect(),
+            survived,
             model_ms: file.f32("model_ms", &[t])?,
             physics_ms: file.f32("physics_ms", &[t])?,
             info,

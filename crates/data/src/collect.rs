@@ -49,6 +49,25 @@ impl Default for CollectConfig {
     }
 }
 
+impl CollectConfig {
+    /// Refuses values a collection cannot use, naming the key.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.noise.is_empty() || self.noise.iter().map(|n| n.1).sum::<usize>() == 0 {
+            return Err("collect.noise allocates no environments".into());
+        }
+        if let Some((sigma, _)) = self.noise.iter().find(|(s, _)| !(s.is_finite() && *s >= 0.0)) {
+            return Err(format!("collect.noise has sigma {sigma}; sigmas must be finite and not negative"));
+        }
+        if self.noise.iter().map(|n| n.1).sum::<usize>() > 100_000 || self.rollout_steps > 10_000_000 {
+            return Err("collect.noise or rollout_steps asks for more than a machine holds".into());
+        }
+        if !(self.noise_unit_rad.is_finite() && self.noise_unit_rad > 0.0) {
+            return Err(format!("collect.noise_unit_rad is {}; it must be positive", self.noise_unit_rad));
+        }
+        Ok(())
+    }
+}
+
 /// What a collection did.
 #[derive(Clone, Debug, Default, Serialize)]
 pub struct CollectStats {

@@ -87,6 +87,21 @@ impl Default for TrainConfig {
 }
 
 impl TrainConfig {
+    /// Refuses values training cannot use, naming the key.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.steps == 0 || self.batch == 0 || self.log_every == 0 || self.checkpoint_every == 0 {
+            return Err("train.steps, batch, log_every and checkpoint_every must be positive".into());
+        }
+        if !(self.lr.is_finite() && self.lr > 0.0) || !(self.grad_clip.is_finite() && self.grad_clip > 0.0) {
+            return Err(format!("train.lr ({}) and grad_clip ({}) must be positive", self.lr, self.grad_clip));
+        }
+        if !(0.0..1.0).contains(&self.validation_fraction) {
+            return Err(format!("train.validation_fraction is {}; it must be in [0, 1)", self.validation_fraction));
+        }
+        self.objective("ddpm").and_then(|o| o.validate().map_err(ModelError::Invalid)).map_err(|e| e.to_string())?;
+        self.objective("fm").and_then(|o| o.validate().map_err(ModelError::Invalid)).map_err(|e| e.to_string())
+    }
+
     pub fn objective(&self, name: &str) -> Result<Objective, ModelError> {
         match name {
             "fm" => Ok(Objective::Fm { time: self.fm_time, solver: self.fm_solver }),
@@ -196,6 +211,16 @@ impl Trainer {
         let file = TensorFile::open(&dir.join(CHECKPOINT_FILE))?;
         let meta: ModelMeta =
             serde_json::from_str(file.meta("model")?).map_err(|e| file.error(format!("metadata 'model': {e}")))?;
+        meta.config.validate().and_then(|()| meta.objective.validate()).map_err(|e| file.error(e))?;
+        let expected = TokenLayout { spec: meta.config.spec(), ..meta.layout };
+        if meta.layout != expected
+            || !(1..=4096).contains(&meta.layout.state_dim)
+            || !(1..=4096).contains(&meta.layout.action_dim)
+        {
+            return Err(file
+                .error(format!("the token layout {:?} does not fit the model's window", meta.layout))
+                .into());
+        }
         let mut t = fresh;
         let ours = t.meta();
         let differs = |what: &str, a: String, b: String| {
@@ -352,6 +377,16 @@ impl TrajectoryModel {
         }
         let meta: ModelMeta =
             serde_json::from_str(file.meta("model")?).map_err(|e| file.error(format!("metadata 'model': {e}")))?;
+        meta.config.validate().and_then(|()| meta.objective.validate()).map_err(|e| file.error(e))?;
+        let expected = TokenLayout { spec: meta.config.spec(), ..meta.layout };
+        if meta.layout != expected
+            || !(1..=4096).contains(&meta.layout.state_dim)
+            || !(1..=4096).contains(&meta.layout.action_dim)
+        {
+            return Err(file
+                .error(format!("the token layout {:?} does not fit the model's window", meta.layout))
+                .into());
+        }
         let (stats, _) = Stats::load(&dir.join(STATS_FILE))?;
         if stats.spec != meta.layout.spec {
             return Err(ModelError::Invalid(format!(

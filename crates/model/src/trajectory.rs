@@ -85,6 +85,27 @@ impl Default for ModelConfig {
 }
 
 impl ModelConfig {
+    /// Refuses sizes no network can have (or no machine can hold), naming the key.
+    pub fn validate(&self) -> Result<(), String> {
+        let within = |v: usize, lo: usize, hi: usize, key: &str| {
+            if (lo..=hi).contains(&v) { Ok(()) } else { Err(format!("model.{key} is {v}; it must be {lo}-{hi}")) }
+        };
+        within(self.history, 0, 64, "history")?;
+        within(self.horizon, 1, 128, "horizon")?;
+        within(self.d_model, 1, 4096, "d_model")?;
+        within(self.heads, 1, 64, "heads")?;
+        within(self.layers, 1, 64, "layers")?;
+        within(self.d_ff, 1, 65536, "d_ff")?;
+        within(self.time_features, 2, 1024, "time_features")?;
+        if !self.d_model.is_multiple_of(self.heads) {
+            return Err(format!("model.d_model ({}) must be a multiple of model.heads ({})", self.d_model, self.heads));
+        }
+        if !self.time_features.is_multiple_of(2) {
+            return Err(format!("model.time_features ({}) must be even", self.time_features));
+        }
+        Ok(())
+    }
+
     pub fn spec(&self) -> WindowSpec {
         WindowSpec { history: self.history, horizon: self.horizon }
     }
@@ -120,6 +141,23 @@ pub enum Objective {
 }
 
 impl Objective {
+    /// Refuses settings the samplers cannot run.
+    pub fn validate(&self) -> Result<(), String> {
+        match *self {
+            Objective::Fm { time: fm::TimeDistribution::LogitNormal { mean, std }, .. }
+                if !(mean.is_finite() && std.is_finite() && std > 0.0) =>
+            {
+                Err(format!("logit-normal times need a finite mean and a positive std, not {mean} and {std}"))
+            }
+            Objective::Ddpm { steps, clip, .. }
+                if !(1..=100_000).contains(&steps) || !(clip.is_finite() && clip > 0.0) =>
+            {
+                Err(format!("DDPM needs 1-100000 steps and a positive clip, not {steps} and {clip}"))
+            }
+            _ => Ok(()),
+        }
+    }
+
     pub fn name(&self) -> &'static str {
         match self {
             Objective::Fm { .. } => "fm",

@@ -81,6 +81,7 @@ impl Clip {
         cyclic: bool,
         qpos: Vec<Vec<f64>>,
     ) -> Result<Self, MotionError> {
+        check_name(name)?;
         if qpos.len() < 2 {
             return Err(MotionError::Invalid(format!("{name}: a clip needs at least 2 frames")));
         }
@@ -317,9 +318,10 @@ impl Clip {
             return Err(bad(format!("clip is at {fps} Hz; flowmimic clips are at {CONTROL_HZ} Hz")));
         }
         let cyclic = get("cyclic")? == "true";
+        let name = get("name")?;
+        check_name(&name).map_err(|e| bad(e.to_string()))?;
         let cycle = cyclic.then(|| loop_motion(humanoid, &qpos[0], &qpos[qpos.len() - 1]));
-        let mut clip =
-            Self { name: get("name")?, source: get("source")?, cyclic, qpos, qvel, bodies: Vec::new(), cycle };
+        let mut clip = Self { name, source: get("source")?, cyclic, qpos, qvel, bodies: Vec::new(), cycle };
         clip.derive_bodies(humanoid).map_err(|e| bad(e.to_string()))?;
         let stored = tensors.tensor("body_pos").map_err(|e| bad(format!("tensor 'body_pos': {e}")))?;
         let expected = clip.len() * NUM_BODIES * 3 * 4;
@@ -362,6 +364,22 @@ fn loop_motion(humanoid: &Arc<Humanoid>, first: &[f64], last: &[f64]) -> Planar 
         cross += u.x * v.y - u.y * v.x;
     }
     Planar { yaw: cross.atan2(dot), pivot: ca, shift: cb - ca }
+}
+
+/// Refuses a clip name that is not a plain file name: names become output files
+/// (`<name>.rollouts.safetensors`, `runs/track/<name>`), so `../x`, `/x` or control characters
+/// would write outside the folder asked for.
+pub fn check_name(name: &str) -> Result<(), MotionError> {
+    let plain = !name.is_empty()
+        && name.len() <= 100
+        && name != "."
+        && name != ".."
+        && !name.chars().any(|c| c == '/' || c == '\\' || c.is_control());
+    if plain {
+        Ok(())
+    } else {
+        Err(MotionError::Invalid(format!("clip name {name:?} is not a plain file name (1-100 characters, no / or \\)")))
+    }
 }
 
 /// Sole height below which a foot counts as in contact, metres.

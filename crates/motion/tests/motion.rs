@@ -326,6 +326,16 @@ fn clip_files_round_trip_and_bad_files_are_refused_by_name() {
     assert!(err.contains("broken.clip.safetensors"), "{err}");
     let err = Clip::load(&h, &tmp("missing.clip.safetensors")).unwrap_err().to_string();
     assert!(err.contains("missing.clip.safetensors"), "{err}");
+    // Names become output paths: one that would leave the folder is refused, made or read.
+    for name in ["../../escaped", "/abs", "", "a\\b"] {
+        assert!(generate(&h, name, &GaitParams { duration: 1.0, ..Default::default() }).is_err(), "{name:?}");
+        let mut hostile = clip.clone();
+        hostile.name = name.into();
+        let path = tmp("hostile.clip.safetensors");
+        hostile.save(&path).unwrap();
+        let err = Clip::load(&h, &path).unwrap_err().to_string();
+        assert!(err.contains("hostile.clip.safetensors") && err.contains("plain file name"), "{err}");
+    }
 }
 
 #[test]

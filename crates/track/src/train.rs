@@ -107,8 +107,33 @@ impl TrackConfig {
         if self.envs * self.horizon < self.minibatches {
             return bad("envs * horizon must be at least the number of minibatches");
         }
-        if self.hidden.is_empty() || self.hidden.contains(&0) {
-            return bad("hidden must list positive layer widths");
+        if self.hidden.is_empty() || self.hidden.iter().any(|&h| !(1..=65536).contains(&h)) || self.hidden.len() > 16 {
+            return bad("hidden must list 1-16 layer widths of 1-65536");
+        }
+        if self.envs > 100_000 || self.horizon > 100_000 {
+            return bad("envs and horizon must be at most 100000");
+        }
+        let positive =
+            [self.learning_rate, self.kl_target, self.clip, self.max_grad_norm, self.action_scale, self.bin_seconds];
+        if positive.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
+            return bad("learning_rate, kl_target, clip, max_grad_norm, action_scale and bin_seconds must be positive");
+        }
+        let unit = [self.gamma, self.lambda, self.bin_smoothing, self.uniform_share];
+        if unit.iter().any(|v| !(0.0..=1.0).contains(v)) {
+            return bad("gamma, lambda, bin_smoothing and uniform_share must be in [0, 1]");
+        }
+        let rest =
+            [self.entropy, self.value_coef, self.init_noise, self.push_max, self.max_height_error, self.max_tilt_error];
+        if rest.iter().any(|v| !(v.is_finite() && *v >= 0.0)) || !self.init_log_std.is_finite() {
+            return bad(
+                "entropy, value_coef, init_noise, push_max and the termination limits must be finite and not negative",
+            );
+        }
+        if !(self.push_interval[0] > 0.0
+            && self.push_interval[0] <= self.push_interval[1]
+            && self.push_interval[1].is_finite())
+        {
+            return bad("push_interval must be [a, b] with 0 < a <= b");
         }
         Ok(())
     }
