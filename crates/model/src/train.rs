@@ -92,7 +92,7 @@ impl TrainConfig {
         if self.steps == 0 || self.batch == 0 || self.log_every == 0 || self.checkpoint_every == 0 {
             return Err("train.steps, batch, log_every and checkpoint_every must be positive".into());
         }
-        if !(self.lr.is_finite() && self.lr > 0.0) || !(self.grad_clip.is_finite() && self.grad_clip > 0.0) {
+        if !(self.lr.is_finite() && self.lr > 0.0 && self.grad_clip.is_finite() && self.grad_clip > 0.0) {
             return Err(format!("train.lr ({}) and grad_clip ({}) must be positive", self.lr, self.grad_clip));
         }
         if !(0.0..1.0).contains(&self.validation_fraction) {

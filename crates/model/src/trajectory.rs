@@ -150,7 +150,7 @@ impl Objective {
                 Err(format!("logit-normal times need a finite mean and a positive std, not {mean} and {std}"))
             }
             Objective::Ddpm { steps, clip, .. }
-                if !(1..=100_000).contains(&steps) || !(clip.is_finite() && clip > 0.0) =>
+                if !((1..=100_000).contains(&steps) && clip.is_finite() && clip > 0.0) =>
             {
                 Err(format!("DDPM needs 1-100000 steps and a positive clip, not {steps} and {clip}"))
             }
