@@ -195,6 +195,13 @@ fn viewer_serves_and_draws(dir: &Path, file: &str) {
     std::io::BufReader::new(server.stdout.take().unwrap()).read_line(&mut line).unwrap();
     let url = line.split_whitespace().nth(1).expect("the viewer prints its address").to_string();
     let host = url.trim_start_matches("http://").trim_end_matches('/').to_string();
+    // An idle client (connected, saying nothing) does not stop others being served.
+    let _idle = std::net::TcpStream::connect(&host).unwrap();
+    let mut foreign = std::net::TcpStream::connect(&host).unwrap();
+    write!(foreign, "GET /data.json HTTP/1.1\r\nHost: evil.example\r\n\r\n").unwrap();
+    let mut reply = String::new();
+    foreign.read_to_string(&mut reply).unwrap();
+    assert!(reply.starts_with("HTTP/1.1 403"), "a foreign Host header was answered: {reply:.100}");
     let mut stream = std::net::TcpStream::connect(&host).unwrap();
     write!(stream, "GET /data.json HTTP/1.1\r\nHost: {host}\r\n\r\n").unwrap();
     let mut reply = String::new();

@@ -37,9 +37,19 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FileError> {
     };
     fs::create_dir_all(dir).map_err(at(dir))?;
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
+    remove_stale_temporaries(dir, &name);
+    static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    // create_new: never through a file or link someone planted under the name; take the next.
+    let (tmp, file) = loop {
+        let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let tmp = dir.join(format!(".{name}.tmp-{}-{n}", std::process::id()));
+        match fs::OpenOptions::new().write(true).create_new(true).open(&tmp) {
+            Err(e) if e.kind() == io::ErrorKind::AlreadyExists && n < 1_000_000 => continue,
+            other => break (tmp.clone(), other.map_err(at(&tmp))?),
+        }
+    };
     let result = (|| {
-        let mut f = fs::File::create(&tmp)?;
+        let mut f = file;
         f.write_all(bytes)?;
         f.sync_all()
     })();
@@ -47,7 +57,27 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), FileError> {
         let _ = fs::remove_file(&tmp);
         return Err(at(&tmp)(e));
     }
-    fs::rename(&tmp, path).map_err(at(path))
+    fs::rename(&tmp, path).map_err(at(path))?;
+    // The rename is durable once the directory is.
+    if let Ok(d) = fs::File::open(dir) {
+        let _ = d.sync_all();
+    }
+    Ok(())
+}
+
+/// Removes `.NAME.tmp-PID-N` files in `dir` left by processes that no longer run (a write
+/// killed between create and rename).
+fn remove_stale_temporaries(dir: &Path, name: &str) {
+    let prefix = format!(".{name}.tmp-");
+    let Ok(entries) = fs::read_dir(dir) else { return };
+    for entry in entries.flatten() {
+        let file = entry.file_name().to_string_lossy().into_owned();
+        let Some(pid) = file.strip_prefix(&prefix).and_then(|rest| rest.split('-').next()) else { continue };
+        let alive = pid.parse::<u32>().is_ok_and(|p| p == std::process::id() || Path::new("/proc").join(pid).exists());
+        if !alive && Path::new("/proc/self").exists() {
+            let _ = fs::remove_file(entry.path());
+        }
+    }
 }
 
 /// Reads a whole file, naming it in the error.
@@ -75,6 +105,22 @@ mod tests {
         assert_eq!(entries.len(), 1, "no temporary files left behind");
         let err = read(&dir.join("missing")).unwrap_err().to_string();
         assert!(err.contains("missing"), "{err}");
+        // A temporary left by a killed writer (a PID that cannot run) is cleared by the next
+        // write; a planted link never receives the bytes.
+        let stale = path.with_file_name(".file.txt.tmp-4294967294-0");
+        fs::write(&stale, b"half").unwrap();
+        let victim = dir.join("victim");
+        fs::write(&victim, b"safe").unwrap();
+        for n in 0..64 {
+            let planted = path.with_file_name(format!(".file.txt.tmp-{}-{n}", std::process::id()));
+            let _ = std::os::unix::fs::symlink(&victim, planted);
+        }
+        write_atomic(&path, b"three").unwrap();
+        write_atomic(&path, b"four").unwrap();
+        assert!(!stale.exists(), "stale temporary kept");
+        assert_eq!(read(&victim).unwrap(), b"safe");
+        assert_eq!(read(&path).unwrap(), b"four");
+        assert_eq!(fs::read_dir(&dir).unwrap().count(), 2, "sub/ and victim");
         fs::remove_dir_all(&dir).unwrap();
     }
 }

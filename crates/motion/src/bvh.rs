@@ -253,7 +253,9 @@ impl Bvh {
         if !(1e-5..=10.0).contains(&frame_time) {
             return err(tline, format!("Frame Time {frame_time} s is not a plausible frame period"));
         }
-        let mut values = Vec::with_capacity(frames * values_per_frame);
+        // Reserve for what a header claims only up to a modest size: the frames must be read
+        // before a large claim is believed.
+        let mut values = Vec::with_capacity(frames.min(10_000) * values_per_frame);
         let mut last_line = tline;
         for (k, &(line, text)) in rows.enumerate() {
             if k >= frames {

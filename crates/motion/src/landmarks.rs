@@ -257,6 +257,11 @@ pub mod deepmimic {
     const TOE: [f64; 3] = [0.13, -0.045, 0.0];
     const HEAD: [f64; 3] = [0.0, 0.2, 0.0];
 
+    /// Largest magnitude of any number in a DeepMimic frame: positions in metres, quaternion
+    /// entries and angles in radians are all far below it (1e308 passed a finiteness check
+    /// and overflowed in retargeting).
+    const MAX_VALUE: f64 = 1e4;
+
     /// A parsed DeepMimic clip: landmarks, and whether it loops.
     pub struct DeepMimicClip {
         pub clip: LandmarkClip,
@@ -277,8 +282,8 @@ pub mod deepmimic {
             let v: Vec<f64> = f
                 .as_array()
                 .filter(|a| a.len() == 44)
-                .and_then(|a| a.iter().map(|x| x.as_f64().filter(|x| x.is_finite())).collect())
-                .ok_or_else(|| fail(format!("frame {i} is not 44 finite numbers")))?;
+                .and_then(|a| a.iter().map(|x| x.as_f64().filter(|x| x.abs() <= MAX_VALUE)).collect())
+                .ok_or_else(|| fail(format!("frame {i} is not 44 numbers within +-{MAX_VALUE}")))?;
             if i == 0 {
                 dt = v[0];
             }

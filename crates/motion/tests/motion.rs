@@ -88,6 +88,16 @@ fn deepmimic_clips_import_and_the_walk_loops_seamlessly() {
         assert!(step(&looped, t) < 2.0 * inside, "jump at frame {t}");
     }
     assert!(looped.qvel.iter().flatten().all(|v| v.is_finite()));
+    // A value near 1e308 is finite, yet no pose has it: refused with the file and frame.
+    let text = std::fs::read_to_string(mocap("humanoid3d_walk.txt")).unwrap();
+    // The second number of frame 0 (the root's x).
+    let first = text.find("\"Frames\"").unwrap();
+    let at = first + text[first..].find(',').unwrap() + 1;
+    let end = at + text[at..].find(',').unwrap();
+    let hostile = tmp("huge.txt");
+    std::fs::write(&hostile, format!("{}1e308{}", &text[..at], &text[end..])).unwrap();
+    let err = import(&h, &hostile, &ImportOptions::default()).unwrap_err().to_string();
+    assert!(err.contains("huge.txt") && err.contains("frame 0"), "{err}");
 }
 
 /// A LAFAN1-style file: 22 joints with LAFAN1's names, cm, Y up, 30 fps, position channels on

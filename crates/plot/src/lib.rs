@@ -75,8 +75,10 @@ fn ticks(lo: f64, hi: f64) -> Vec<f64> {
     let raw = span / 5.0;
     let mag = 10f64.powf(raw.log10().floor());
     let step = [1.0, 2.0, 5.0, 10.0].iter().map(|m| m * mag).find(|s| span / s <= 6.0).unwrap_or(10.0 * mag);
-    let first = (lo / step).ceil() as i64;
-    (first..).map(|k| k as f64 * step).take_while(|v| *v <= hi + 1e-9 * span).collect()
+    let first = (lo / step).ceil();
+    // At most a dozen, even where the values are so large that k and k + 1 give the same
+    // float (an axis near 1e18 with a span of 100 once looped for practically ever).
+    (0..12).map(|k| (first + k as f64) * step).take_while(|v| *v <= hi + 1e-9 * span).collect()
 }
 
 fn label(v: f64) -> String {
@@ -344,6 +346,14 @@ impl Canvas {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn ticks_end_on_absurd_ranges() {
+        assert!(ticks(1e18, 1e18 + 100.0).len() <= 12);
+        assert!(ticks(-f64::MAX, f64::MAX).len() <= 12);
+        let chart = Chart::new("t", "x", "y").series(Series::line("a", vec![(1e18, 1.0), (1e18 + 50.0, 2.0), (f64::INFINITY, 3.0)]));
+        assert!(!chart.svg().is_empty());
+    }
 
     #[test]
     fn ticks_are_round_and_cover_the_range() {

@@ -134,28 +134,33 @@ fn gif_bytes(images: &[Vec<u8>], w: usize, h: usize, fps: usize) -> Result<Vec<u
     Ok(out)
 }
 
-/// H.264 through the system's `ffmpeg` (Debian: `apt-get install ffmpeg`).
+/// H.264 through the system's `ffmpeg` (Debian: `apt-get install ffmpeg`), as a fragmented
+/// MP4 written to a pipe: no temporary file anywhere.
 fn mp4_bytes(images: &[Vec<u8>], w: usize, h: usize, fps: usize) -> Result<Vec<u8>, String> {
-    let tmp = std::env::temp_dir().join(format!("flowmimic-{}.mp4", std::process::id()));
     let mut child = Command::new("ffmpeg")
-        .args(["-loglevel", "error", "-y", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", &format!("{w}x{h}")])
+        .args(["-loglevel", "error", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s", &format!("{w}x{h}")])
         .args(["-r", &fps.to_string(), "-i", "-", "-pix_fmt", "yuv420p", "-vf", "pad=ceil(iw/2)*2:ceil(ih/2)*2"])
-        .arg(&tmp)
+        .args(["-f", "mp4", "-movflags", "frag_keyframe+empty_moov", "pipe:1"])
         .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
         .spawn()
         .map_err(|e| format!("MP4 needs ffmpeg on the PATH ({e}); write a .gif instead, or apt-get install ffmpeg"))?;
     let mut stdin = child.stdin.take().expect("piped");
-    for img in images {
-        stdin.write_all(img).map_err(|e| format!("ffmpeg: {e}"))?;
-    }
-    drop(stdin);
+    let mut stdout = child.stdout.take().expect("piped");
+    // Feed the frames from another thread while this one drains the output, so neither pipe
+    // fills up and blocks the other.
+    let (bytes, fed) = std::thread::scope(|scope| {
+        let feeder = scope.spawn(move || images.iter().try_for_each(|img| stdin.write_all(img)));
+        let mut bytes = Vec::new();
+        let read = std::io::Read::read_to_end(&mut stdout, &mut bytes);
+        (read.map(|_| bytes), feeder.join().unwrap_or(Ok(())))
+    });
     let status = child.wait().map_err(|e| format!("ffmpeg: {e}"))?;
     if !status.success() {
         return Err(format!("ffmpeg failed ({status})"));
     }
-    let bytes = std::fs::read(&tmp).map_err(|e| format!("ffmpeg output: {e}"))?;
-    let _ = std::fs::remove_file(&tmp);
-    Ok(bytes)
+    fed.map_err(|e| format!("ffmpeg input: {e}"))?;
+    bytes.map_err(|e| format!("ffmpeg output: {e}"))
 }
 
 /// Six images in a 3 x 2 grid, as PNG.

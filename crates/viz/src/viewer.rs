@@ -9,8 +9,10 @@ use flowmimic_motion::Clip;
 use flowmimic_sim::skeleton::BODY_PARENTS;
 use flowmimic_sim::state::offset;
 use flowmimic_sim::{BODY_NAMES, CONTROL_HZ, NUM_BODIES};
-use std::io::{BufRead, BufReader, Write};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::net::{TcpListener, TcpStream};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 const PAGE: &str = include_str!("viewer.html");
 
@@ -93,37 +95,85 @@ pub fn respond(request_line: &str, json: &str) -> (&'static str, &'static str, V
     }
 }
 
+/// Largest request (line and headers) read, bytes; connections open at once; seconds a client
+/// may take to send its request.
+const MAX_REQUEST: u64 = 16 * 1024;
+const MAX_CONNECTIONS: usize = 64;
+const REQUEST_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
+
 /// Serves `data` on 127.0.0.1:`port` (0: any free port) until killed; `on_ready` receives
-/// the address once listening.
+/// the address once listening. Each connection has its own thread, a size limit and a
+/// timeout, so an idle or slow client never blocks another; a Host header that is not a
+/// loopback name is refused (DNS rebinding).
 pub fn serve(data: &ViewData, port: u16, on_ready: impl FnOnce(&str)) -> Result<(), VizError> {
-    let json = serde_json::to_string(data).expect("serialisable");
+    let json: Arc<str> = serde_json::to_string(data).expect("serialisable").into();
     let listener = TcpListener::bind(("127.0.0.1", port))
         .map_err(|e| VizError::Serve(format!("cannot listen on 127.0.0.1:{port}: {e}")))?;
     let addr = listener.local_addr().map_err(|e| VizError::Serve(e.to_string()))?;
     on_ready(&format!("http://{addr}/"));
-    for stream in listener.incoming().flatten() {
-        // One bad connection never stops the viewer.
-        let _ = handle(stream, &json);
+    let open = Arc::new(AtomicUsize::new(0));
+    for mut stream in listener.incoming().flatten() {
+        if open.fetch_add(1, Ordering::SeqCst) >= MAX_CONNECTIONS {
+            open.fetch_sub(1, Ordering::SeqCst);
+            let _ = reply(&mut stream, "503 Service Unavailable", "text/plain", b"busy");
+            continue;
+        }
+        let (json, open) = (Arc::clone(&json), Arc::clone(&open));
+        std::thread::spawn(move || {
+            // One bad connection never stops the viewer.
+            let _ = handle(stream, &json);
+            open.fetch_sub(1, Ordering::SeqCst);
+        });
     }
     Ok(())
 }
 
+/// Whether a Host header names this machine's loopback (any port).
+fn loopback_host(host: &str) -> bool {
+    let name = match host.rsplit_once(':') {
+        Some((name, port)) if !name.is_empty() && port.chars().all(|c| c.is_ascii_digit()) => name,
+        _ => host,
+    };
+    matches!(name, "127.0.0.1" | "localhost" | "[::1]")
+}
+
 fn handle(mut stream: TcpStream, json: &str) -> std::io::Result<()> {
-    let mut reader = BufReader::new(stream.try_clone()?);
+    stream.set_read_timeout(Some(REQUEST_TIMEOUT))?;
+    stream.set_write_timeout(Some(REQUEST_TIMEOUT))?;
+    let mut reader = BufReader::new(stream.try_clone()?.take(MAX_REQUEST));
     let mut request = String::new();
     reader.read_line(&mut request)?;
-    // Drain the headers.
-    let mut header = String::new();
-    while reader.read_line(&mut header)? > 2 {
+    // The headers, up to the blank line; a request that never ends it is refused.
+    let (mut header, mut host, mut complete) = (String::new(), None, false);
+    while reader.read_line(&mut header)? > 0 {
+        if header == "\r\n" || header == "\n" {
+            complete = true;
+            break;
+        }
+        if let Some((name, value)) = header.split_once(':')
+            && name.eq_ignore_ascii_case("host")
+        {
+            host = Some(value.trim().to_string());
+        }
         header.clear();
     }
+    if !complete || !request.ends_with('\n') {
+        return reply(&mut stream, "400 Bad Request", "text/plain", b"incomplete or oversized request");
+    }
+    if !host.as_deref().is_some_and(loopback_host) {
+        return reply(&mut stream, "403 Forbidden", "text/plain", b"the viewer answers loopback names only");
+    }
     let (status, kind, body) = respond(&request, json);
+    reply(&mut stream, status, kind, &body)
+}
+
+fn reply(stream: &mut TcpStream, status: &str, kind: &str, body: &[u8]) -> std::io::Result<()> {
     write!(
         stream,
         "HTTP/1.1 {status}\r\nContent-Type: {kind}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
         body.len()
     )?;
-    stream.write_all(&body)
+    stream.write_all(body)
 }
 
 #[cfg(test)]
@@ -138,5 +188,15 @@ mod tests {
         assert!(page.contains("fetch(\"data.json\")") && !page.contains("http://") && !page.contains("https://"));
         assert_eq!(respond("GET /data.json?x=1 HTTP/1.1", "{\"a\":1}").2, b"{\"a\":1}");
         assert_eq!(respond("GET /../etc/passwd HTTP/1.1", "{}").0, "404 Not Found");
+    }
+
+    #[test]
+    fn only_loopback_names_are_answered() {
+        for host in ["127.0.0.1:8000", "localhost:43011", "localhost", "[::1]:80"] {
+            assert!(loopback_host(host), "{host}");
+        }
+        for host in ["evil.example:8000", "127.0.0.1.evil.example", "10.0.0.1:8000", ""] {
+            assert!(!loopback_host(host), "{host}");
+        }
     }
 }
