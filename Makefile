@@ -12,6 +12,7 @@ run: $(MUJOCO)
 # Minutes instead of an hour: the shipped models walk on a joystick and reach.
 demo: $(MUJOCO)
 	cargo run --release -- demo
+	cargo run --release -- render runs/demo/joystick.rollout.safetensors
 	cargo run --release -- render runs/demo/reach.rollout.safetensors
 
 test: $(MUJOCO)

@@ -4,13 +4,18 @@
 use crate::run::{load_model, start_clip};
 use anyhow::Result;
 use flowmimic_control::{ControlConfig, Hand, JoystickSegment, Rollout, Task};
-use flowmimic_eval::protocols::joystick_trial;
+use flowmimic_eval::protocols::{joystick_trial, yaw_rates};
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::skeleton::body;
 use flowmimic_sim::state::offset;
 use flowmimic_sim::{CONTROL_HZ, Humanoid};
 use std::path::Path;
 use std::sync::Arc;
+
+/// Guidance scales of the demo: the joystick's and the reach's (see the README's Results for
+/// the sweeps they come from).
+pub const JOYSTICK_SCALE: f32 = 10.0;
+pub const REACH_SCALE: f32 = 10.0;
 
 pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -> Result<()> {
     let model = load_model(model_dir)?;
@@ -36,7 +41,7 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
 
     // 1. Joystick: forward, backward, turn left, turn right, 3 s each.
     let task = Task::joystick_eval();
-    let r = flowmimic_control::run(&model, humanoid, &clip, vec![task], &control(12.0, 2.0), &name, |_| {})?;
+    let r = flowmimic_control::run(&model, humanoid, &clip, vec![task], &control(12.0, JOYSTICK_SCALE), &name, |_| {})?;
     r.save(&out.join("joystick.rollout.safetensors"))?;
     let t = joystick_trial(&r, 0);
     let time = |k: usize| k as f64 / CONTROL_HZ;
@@ -45,8 +50,13 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
         .series(Series::line("commanded", series(&|k| f64::from(r.command(0, k)[0]))))
         .series(Series::line("achieved", series(&|k| f64::from(r.state(0, k + 1)[offset::ROOT_VEL]))))
         .save(&out.join("joystick_velocity"))?;
+    let rates = yaw_rates(&r, 0);
+    Chart::new("joystick: yaw rate", "seconds", "rad/s")
+        .series(Series::line("commanded", series(&|k| f64::from(r.command(0, k)[2]))))
+        .series(Series::line("achieved", series(&|k| rates[k])))
+        .save(&out.join("joystick_yaw_rate"))?;
     println!(
-        "joystick (forward, backward, turn left, turn right; w 2): velocity RMSE {:.2} m/s, yaw-rate RMSE {:.2} rad/s, {}",
+        "joystick (forward, backward, turn left, turn right; w {JOYSTICK_SCALE}): velocity RMSE {:.2} m/s, yaw-rate RMSE {:.2} rad/s, {}",
         t.velocity_rmse,
         t.yaw_rate_rmse,
         fell(&r)
@@ -57,7 +67,7 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
     let start = &clip.qpos[flowmimic_control::controller::start_frame(clip.len(), model.layout().spec.history, 0)];
     let target = [start[0] + 2.0, start[1] - 0.3, 1.2];
     let task = Task { joystick: vec![walk], reach: Some((Hand::Right, target)), ..Task::walk() };
-    let r = flowmimic_control::run(&model, humanoid, &clip, vec![task], &control(5.0, 20.0), &name, |_| {})?;
+    let r = flowmimic_control::run(&model, humanoid, &clip, vec![task], &control(5.0, REACH_SCALE), &name, |_| {})?;
     r.save(&out.join("reach.rollout.safetensors"))?;
     let distance = |k: usize| {
         let h = r.body(0, k, body::R_HAND);
@@ -68,10 +78,10 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
     Chart::new("reach while walking: right hand to target", "seconds", "metres")
         .series(Series::line("distance", d))
         .save(&out.join("reach_distance"))?;
-    println!("reach while walking (w 20): closest hand-target distance {closest:.2} m, {}", fell(&r));
+    println!("reach while walking (w {REACH_SCALE}): closest hand-target distance {closest:.2} m, {}", fell(&r));
     let (model_ms, physics_ms) = r.median_ms();
     println!("per control step (median): model {model_ms:.1} ms, physics {physics_ms:.1} ms");
-    eprintln!("wrote rollouts and joystick_velocity/reach_distance .png/.svg in {}", out.display());
+    eprintln!("wrote rollouts and joystick_velocity/joystick_yaw_rate/reach_distance .png/.svg in {}", out.display());
     Ok(())
 }
 

@@ -1,7 +1,6 @@
-//! `flowmimic eval ...`: the paper's experiments, each writing raw per-trial CSV, a JSON
-//! summary, plots, and a section of `report.md` in the output directory. Points already in the
-//! CSV (same model, NFE, scale, seed and trial count) are reused, so an interrupted sweep
-//! resumes where it stopped.
+//! `flowmimic eval ...`: the paper's experiments as arguments: which protocol, models, points,
+//! and how each is written down (columns, table rows, notes). Running them, storing and reusing
+//! trials and writing the report is `flowmimic_eval::sweep`'s.
 
 use crate::progress::Progress;
 use crate::run::start_clip;
@@ -9,14 +8,11 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use flowmimic_control::{Hand, JoystickSegment, StepReport, Task};
 use flowmimic_data::Dataset;
-use flowmimic_eval::protocols::{self, Bench, Point};
-use flowmimic_eval::{frechet_distance, gaussian, mean_std};
-use flowmimic_model::{Gradient, TrajectoryModel};
-use flowmimic_plot::{Chart, Series};
+use flowmimic_eval::protocols::{self, Point};
+use flowmimic_eval::sweep::{EvalModel, Experiment, Rows, finish, sweep};
+use flowmimic_eval::{frechet_distance, gaussian};
+use flowmimic_model::Gradient;
 use flowmimic_sim::{Humanoid, STATE_DIM};
-use sha2::{Digest, Sha256};
-use std::collections::BTreeMap;
-use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -141,23 +137,7 @@ pub enum EvalCommand {
     },
 }
 
-/// A loaded model and its label.
-struct Labelled {
-    label: String,
-    dir: PathBuf,
-    model: TrajectoryModel,
-    /// SHA-256 of the model's weights and statistics: stored results are keyed by it, so a
-    /// retrained model in the same folder is evaluated anew.
-    content: String,
-}
-
-impl Labelled {
-    fn bench<'a>(&'a self, humanoid: &'a Arc<Humanoid>, clip: &'a flowmimic_motion::Clip) -> Bench<'a> {
-        Bench { model: &self.model, humanoid, clip, name: &self.label }
-    }
-}
-
-fn load_models(specs: &[String]) -> Result<Vec<Labelled>> {
+fn load_models(specs: &[String]) -> Result<Vec<EvalModel>> {
     let defaults = ["fm", "ddpm"].map(|o| format!("{o}={}", crate::model::default_out(o).display()));
     let specs = if specs.is_empty() { &defaults[..] } else { specs };
     specs
@@ -165,206 +145,9 @@ fn load_models(specs: &[String]) -> Result<Vec<Labelled>> {
         .map(|s| {
             let (label, dir) = s.split_once('=').with_context(|| format!("--model {s}: use LABEL=DIR"))?;
             let model = crate::run::load_model(Path::new(dir))?;
-            let mut h = Sha256::new();
-            for file in [flowmimic_model::train::MODEL_FILE, flowmimic_model::train::STATS_FILE] {
-                h.update(flowmimic_io::read(&Path::new(dir).join(file))?);
-            }
-            let content = format!("{:x}", h.finalize());
-            Ok(Labelled { label: label.to_string(), dir: dir.into(), model, content })
+            lib(EvalModel::new(label, Path::new(dir), model))
         })
         .collect()
-}
-
-/// Raw per-trial rows of one experiment, keyed by point, persisted as CSV.
-struct Sweep {
-    path: PathBuf,
-    columns: Vec<&'static str>,
-    rows: BTreeMap<String, Vec<Vec<f64>>>,
-}
-
-impl Sweep {
-    const KEY: &'static str = "model,objective,horizon,nfe,scale,gradient,execute,seed,trial";
-
-    fn open(path: PathBuf, columns: &[&'static str]) -> Self {
-        let mut rows: BTreeMap<String, Vec<Vec<f64>>> = BTreeMap::new();
-        let text = flowmimic_io::read_to_string(&path).unwrap_or_default();
-        let mut lines = text.lines();
-        let header = format!("{},{}", Self::KEY, columns.join(","));
-        if lines.next() == Some(header.as_str()) {
-            for line in lines {
-                let f: Vec<&str> = line.split(',').collect();
-                let values: Option<Vec<f64>> = f.get(9..).map(|v| v.iter().filter_map(|x| x.parse().ok()).collect());
-                if let Some(v) = values.filter(|v| v.len() == columns.len()) {
-                    rows.entry(f[..8].join(",")).or_default().push(v);
-                }
-            }
-        }
-        Self { path, columns: columns.to_vec(), rows }
-    }
-
-    /// The point's key: the model (label, and a hash of its content and the protocol's
-    /// settings: episode length, start clip, reference dataset), and the sampler settings.
-    fn key(m: &Labelled, settings: &str, point: Point) -> String {
-        let h = m.model.layout().spec.horizon;
-        let (nfe, w, k, seed) = (point.nfe, point.scale, point.execute, point.seed);
-        let g = serde_json::to_string(&point.gradient).expect("json");
-        let inputs = format!("{:x}", Sha256::digest(format!("{}\0{settings}", m.content)));
-        let model = format!("{}@{}", m.label, &inputs[..12]);
-        format!("{model},{},{h},{nfe},{w},{},{k},{seed}", m.model.objective.name(), g.trim_matches('"'))
-    }
-
-    /// The point's rows: stored ones when complete, else computed by `run` and stored.
-    fn point(
-        &mut self,
-        m: &Labelled,
-        settings: &str,
-        point: Point,
-        trials: usize,
-        run: impl FnOnce() -> Result<Vec<Vec<f64>>>,
-    ) -> Result<Vec<Vec<f64>>> {
-        let key = Self::key(m, settings, point);
-        if let Some(rows) = self.rows.get(&key).filter(|r| r.len() == trials) {
-            eprintln!("{key}: reusing {} stored trials from {}", rows.len(), self.path.display());
-            return Ok(rows.clone());
-        }
-        let rows = run()?;
-        self.rows.insert(key, rows.clone());
-        self.save()?;
-        Ok(rows)
-    }
-
-    fn save(&self) -> Result<()> {
-        let mut text = format!("{},{}\n", Self::KEY, self.columns.join(","));
-        for (key, rows) in &self.rows {
-            for (t, row) in rows.iter().enumerate() {
-                let values: Vec<String> = row.iter().map(|v| format!("{v}")).collect();
-                writeln!(text, "{key},{t},{}", values.join(","))?;
-            }
-        }
-        Ok(flowmimic_io::write_atomic(&self.path, text.as_bytes())?)
-    }
-}
-
-/// Mean and standard deviation of each column.
-fn summarise(rows: &[Vec<f64>], columns: &[&str]) -> BTreeMap<String, (f64, f64)> {
-    columns
-        .iter()
-        .enumerate()
-        .map(|(j, c)| {
-            (c.to_string(), mean_std(&rows.iter().map(|r| r[j]).filter(|v| v.is_finite()).collect::<Vec<_>>()))
-        })
-        .collect()
-}
-
-/// One summarised point for the JSON and the report.
-#[derive(serde::Serialize)]
-struct Summary {
-    model: String,
-    dir: String,
-    objective: String,
-    horizon: usize,
-    nfe: usize,
-    scale: f32,
-    execute: usize,
-    seed: u64,
-    trials: usize,
-    mean: BTreeMap<String, f64>,
-    std: BTreeMap<String, f64>,
-}
-
-fn summary(m: &Labelled, point: Point, rows: &[Vec<f64>], columns: &[&str]) -> Summary {
-    let s = summarise(rows, columns);
-    Summary {
-        model: m.label.clone(),
-        dir: m.dir.display().to_string(),
-        objective: m.model.objective.name().into(),
-        horizon: m.model.layout().spec.horizon,
-        nfe: point.nfe,
-        scale: point.scale,
-        execute: point.execute,
-        seed: point.seed,
-        trials: rows.len(),
-        mean: s.iter().map(|(k, v)| (k.clone(), v.0)).collect(),
-        std: s.iter().map(|(k, v)| (k.clone(), v.1)).collect(),
-    }
-}
-
-/// Machine facts for the report.
-fn machine() -> String {
-    let cpu = std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|t| {
-            t.lines()
-                .find(|l| l.starts_with("model name"))
-                .map(|l| l.split(':').nth(1).unwrap_or("").trim().to_string())
-        })
-        .unwrap_or_else(|| "unknown CPU".into());
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    format!("{cpu}, {cores} threads")
-}
-
-/// Writes the JSON summary, appends a report section, and says where everything went.
-fn finish(
-    out: &Path,
-    models: &[Labelled],
-    (name, title): (&str, &str),
-    notes: &str,
-    summaries: &[Summary],
-    table: String,
-) -> Result<()> {
-    flowmimic_io::write_atomic(
-        &out.join(format!("{name}.json")),
-        serde_json::to_string_pretty(&summaries)?.as_bytes(),
-    )?;
-    let report = out.join("report.md");
-    let mut text = flowmimic_io::read_to_string(&report).unwrap_or_else(|_| "# flowmimic evaluation report\n".into());
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let described: Vec<String> = models
-        .iter()
-        .map(|m| {
-            let c = &m.model.config;
-            format!(
-                "`{}` = `{}` ({}, N {} H {}, d {} x {} layers, {} heads)",
-                m.label,
-                m.dir.display(),
-                m.model.objective.name().to_uppercase(),
-                c.history,
-                c.horizon,
-                c.d_model,
-                c.layers,
-                c.heads
-            )
-        })
-        .collect();
-    write!(
-        text,
-        "\n## {title}\n\n`flowmimic {}` on {} ({})\n\nModels: {}.\n\n{notes}\n\n{table}\nRaw trials: `{name}.csv`; summary: `{name}.json`.\n\n![{name}]({name}.png)\n",
-        args.join(" "),
-        machine(),
-        chrono_now(),
-        described.join("; ")
-    )?;
-    flowmimic_io::write_atomic(&report, text.as_bytes())?;
-    println!("{table}");
-    eprintln!("wrote {name}.csv, {name}.json, {name}.png/svg and appended to {}", report.display());
-    Ok(())
-}
-
-/// UTC date and time from the system clock (no extra dependency for one timestamp).
-fn chrono_now() -> String {
-    let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
-    let days = secs / 86400;
-    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
-    let z = days as i64 + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let day = doy - (153 * mp + 2) / 5 + 1;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 };
-    let year = yoe + era * 400 + i64::from(month <= 2);
-    format!("{year}-{month:02}-{day:02} {:02}:{:02} UTC", (secs % 86400) / 3600, (secs % 3600) / 60)
 }
 
 fn progress_for(total_steps: usize) -> (Progress, impl Fn(&Progress, &StepReport)) {
@@ -378,68 +161,9 @@ fn progress_for(total_steps: usize) -> (Progress, impl Fn(&Progress, &StepReport
     })
 }
 
-/// Per-trial rows of one point.
-type Rows = Result<Vec<Vec<f64>>>;
-
-/// How one experiment is written down: file stem, report heading, raw columns, the column
-/// plotted against the swept value, and the Markdown table's header.
-struct Experiment {
-    name: &'static str,
-    /// What else determines the results (episode length, start clip, reference data).
-    settings: String,
-    title: &'static str,
-    columns: &'static [&'static str],
-    plot: &'static str,
-    x_label: &'static str,
-    y_label: &'static str,
-    header: &'static str,
-}
-
-/// Runs (or reuses) every model at every point, one row per trial; plots `plot` against the
-/// swept value (NFE when `by_nfe`, else the guidance scale), and the fall rate when recorded;
-/// returns the summaries and the Markdown table.
-fn sweep(
-    exp: &Experiment,
-    out: &Path,
-    models: &[Labelled],
-    (points, trials, by_nfe): (&[Point], usize, bool),
-    mut run: impl FnMut(&Labelled, Point) -> Rows,
-    row: impl Fn(&Labelled, &Summary) -> String,
-) -> Result<(Vec<Summary>, String)> {
-    let mut stored = Sweep::open(out.join(format!("{}.csv", exp.name)), exp.columns);
-    let x_of = |p: &Point| if by_nfe { p.nfe as f64 } else { f64::from(p.scale) };
-    let mut chart = Chart::new(exp.title, exp.x_label, exp.y_label);
-    let mut falls = Chart::new(&format!("{}: falls", exp.title), exp.x_label, "fall rate");
-    if by_nfe {
-        chart = chart.log_x();
-        falls = falls.log_x();
-    }
-    let (mut summaries, mut table) = (Vec::new(), format!("{}\n", exp.header));
-    for m in models {
-        let (mut line, mut band, mut fell) = (Vec::new(), Vec::new(), Vec::new());
-        for &point in points {
-            eprintln!("{}: {} NFE {} w {} ({trials} trials)", exp.name, m.label, point.nfe, point.scale);
-            let rows = stored.point(m, &exp.settings, point, trials, || run(m, point))?;
-            let s = summary(m, point, &rows, exp.columns);
-            let (mean, std) = (s.mean[exp.plot], s.std[exp.plot]);
-            line.push((x_of(&point), mean));
-            band.push((x_of(&point), mean - std, mean + std));
-            if let Some(f) = s.mean.get("fell") {
-                fell.push((x_of(&point), *f));
-            }
-            table.push_str(&row(m, &s));
-            table.push('\n');
-            summaries.push(s);
-        }
-        let series = Series::line(&m.label, line);
-        chart = chart.series(if trials > 1 { series.with_band(band) } else { series });
-        falls = falls.series(Series::line(&m.label, fell));
-    }
-    chart.save(&out.join(exp.name))?;
-    if exp.columns.contains(&"fell") {
-        falls.save(&out.join(format!("{}_falls", exp.name)))?;
-    }
-    Ok((summaries, table))
+/// The library's boxed error as the command line's.
+fn lib<T>(r: flowmimic_eval::sweep::Result<T>) -> Result<T> {
+    r.map_err(|e| anyhow::anyhow!(e))
 }
 
 /// `1.0` for true, so falls and successes average into rates.
@@ -508,7 +232,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 y_label: "control steps survived",
                 header: "| model | objective | NFE | steps survived (mean ± std) | paper FM / DDPM |\n|---|---|---|---|---|",
             };
-            let (summaries, table) = sweep(
+            let (summaries, table) = lib(sweep(
                 &exp,
                 out,
                 &models,
@@ -531,12 +255,12 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                         m.label, s.objective, s.nfe, s.mean["steps"], s.std["steps"]
                     )
                 },
-            )?;
+            ))?;
             let notes = format!(
                 "Unguided walking, a random planar root-velocity kick of uniform 0-0.5 m/s in a uniform direction every 1 s, \
                  failure when the head is below 0.2 m; {trials} trials per point, episode cap {seconds:.1} s ({steps} steps), seed {seed}."
             );
-            finish(out, &models, (exp.name, exp.title), &notes, &summaries, table)?;
+            lib(finish(out, &models, (exp.name, exp.title), &notes, &summaries, table))?;
         }
         EvalCommand::Joystick { scales, nfe, .. } => {
             let trials = trials(10, 2);
@@ -550,7 +274,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 y_label: "velocity RMSE (m/s)",
                 header: "| model | H | w | velocity RMSE (m/s) | yaw-rate RMSE (rad/s) | falls |\n|---|---|---|---|---|---|",
             };
-            let (summaries, table) = sweep(
+            let (summaries, table) = lib(sweep(
                 &exp,
                 out,
                 &models,
@@ -573,13 +297,13 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                         100.0 * s.mean["fell"]
                     )
                 },
-            )?;
+            ))?;
             let notes = format!(
                 "Forward 1.0 m/s, backward 0.5 m/s, turn left and right (0.8 m/s at 0.6 rad/s), 3 s each; RMSE between commanded \
                  and achieved planar root velocity (character frame) over the steps before any fall; NFE {nfe}, {trials} trials. \
                  Paper: RMSE ≈ 0.55 at w = 40; 1.05 at H = 2 to 0.70 at H = 16."
             );
-            finish(out, &models, (exp.name, exp.title), &notes, &summaries, table)?;
+            lib(finish(out, &models, (exp.name, exp.title), &notes, &summaries, table))?;
         }
         EvalCommand::Reach { scales, nfe, .. } => {
             let trials = trials(20, 4);
@@ -593,7 +317,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 y_label: "hand-target distance (m)",
                 header: "| model | H | w | mean distance (m) | RMS (m) | closest (m) | falls |\n|---|---|---|---|---|---|---|",
             };
-            let (summaries, table) = sweep(
+            let (summaries, table) = lib(sweep(
                 &exp,
                 out,
                 &models,
@@ -616,13 +340,13 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                         100.0 * s.mean["fell"]
                     )
                 },
-            )?;
+            ))?;
             let notes = format!(
                 "Right-hand targets 1.5-3 m ahead of each trial's start, within 0.5 m to either side, 0.9-1.5 m high; 4 s of guided \
                  walking; distance averaged over the trial (mean, RMS) and the closest approach; NFE {nfe}, {trials} trials. \
                  Paper: RMSE ≈ 1.1 at w = 100."
             );
-            finish(out, &models, (exp.name, exp.title), &notes, &summaries, table)?;
+            lib(finish(out, &models, (exp.name, exp.title), &notes, &summaries, table))?;
         }
         EvalCommand::Compose { scales, nfe, .. } => {
             let trials = trials(20, 4);
@@ -636,7 +360,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 y_label: "success rate",
                 header: "| model | w | success | closest pelvis (m) | closest hand (m) | falls |\n|---|---|---|---|---|---|",
             };
-            let (summaries, table) = sweep(
+            let (summaries, table) = lib(sweep(
                 &exp,
                 out,
                 &models,
@@ -658,13 +382,13 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                         100.0 * s.mean["fell"]
                     )
                 },
-            )?;
+            ))?;
             let notes = format!(
                 "Waypoint 3-4 m ahead and up to 1.5 m aside; right-hand target 0.4 m right of it at 1.2 m; 10 s; success when the \
                  pelvis is within 0.5 m of the waypoint and the hand within 0.15 m of the target at the same step; NFE {nfe}, \
                  {trials} trials."
             );
-            finish(out, &models, (exp.name, exp.title), &notes, &summaries, table)?;
+            lib(finish(out, &models, (exp.name, exp.title), &notes, &summaries, table))?;
         }
         EvalCommand::Quality { dataset, nfe, .. } => {
             let trials = trials(16, 4);
@@ -688,7 +412,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 header: "| model | NFE | Fréchet distance |\n|---|---|---|",
             };
             let steps = (seconds * flowmimic_sim::CONTROL_HZ) as usize;
-            let (summaries, table) = sweep(
+            let (summaries, table) = lib(sweep(
                 &exp,
                 out,
                 &models,
@@ -702,7 +426,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                     })
                 },
                 |m, s| format!("| {} | {} | {:.4} |", m.label, s.nfe, s.mean["frechet"]),
-            )?;
+            ))?;
             let table = format!("{table}| reference against itself (floor) | – | {floor:.4} |\n");
             let notes = format!(
                 "Features per control step: root height, root velocity (character frame), and head, hand and foot positions \
@@ -710,7 +434,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                  steps before any fall) against every state of `{}`; the floor compares alternate 10 s blocks of the data.",
                 dataset.display()
             );
-            finish(out, &models, (exp.name, exp.title), &notes, &summaries, table)?;
+            lib(finish(out, &models, (exp.name, exp.title), &notes, &summaries, table))?;
         }
         EvalCommand::Latency { nfe, guided, .. } => {
             let scale = guided.unwrap_or(0.0);
@@ -729,7 +453,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 y_label: "milliseconds",
                 header: "| model | objective | NFE | model ms | physics ms | control Hz |\n|---|---|---|---|---|---|",
             };
-            let (summaries, table) = sweep(
+            let (summaries, table) = lib(sweep(
                 &exp,
                 out,
                 &models,
@@ -749,7 +473,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                         1e3 / s.mean["total_ms"]
                     )
                 },
-            )?;
+            ))?;
             let walking = match guided {
                 Some(w) => format!("walking guided at w = {w} on the joystick schedule ({gradient:?} gradient)"),
                 None => "unguided walking".into(),
@@ -758,7 +482,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 "Median over 3 s of {walking} with one environment; model = one sampling call (all NFE steps), \
                  physics = one 30 Hz step. Paper: FM about 4x faster than DDPM for the same robustness (NFE 5 vs 20)."
             );
-            finish(out, &models, (exp.name, exp.title), &notes, &summaries, table)?;
+            lib(finish(out, &models, (exp.name, exp.title), &notes, &summaries, table))?;
         }
     }
     Ok(())
@@ -779,7 +503,7 @@ fn dataset_features(dir: &Path) -> Result<Vec<Vec<f64>>> {
 
 /// `flowmimic eval guidance`: the executed action's change against the later actions'.
 fn guidance_effect(
-    models: &[Labelled],
+    models: &[EvalModel],
     humanoid: &Arc<Humanoid>,
     clip: &flowmimic_motion::Clip,
     scales: &[f32],

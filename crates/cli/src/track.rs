@@ -36,12 +36,16 @@ pub enum TrackCommand {
         /// The run directory.
         run: PathBuf,
     },
-    /// Tracking metrics of a trained policy on its clip.
+    /// Tracking metrics of a trained policy on its clips (one JSON line per clip), or on other
+    /// clips it was not trained on (`--clip`, repeatable): how well it tracks unseen walks.
     Eval {
         /// The run directory (policy.safetensors and clip.safetensors).
         run: PathBuf,
         #[arg(long, default_value_t = 100)]
         episodes: usize,
+        /// Evaluate on these clip files instead of the run's own.
+        #[arg(long)]
+        clip: Vec<PathBuf>,
         /// Apply the survival protocol's kicks (0-0.5 m/s every second).
         #[arg(long)]
         kicks: bool,
@@ -103,11 +107,12 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
             plot_curves(&run, &rows)?;
             eprintln!("wrote reward, episode_length and body_error .png/.svg in {}", run.display());
         }
-        TrackCommand::Eval { run, episodes, kicks } => {
+        TrackCommand::Eval { run, episodes, clip, kicks } => {
             let ck = Checkpoint::read(&run.join(RUN_POLICY))?;
             let (cfg, policy_net) = (ck.config()?, ck.policy()?);
+            let clips = if clip.is_empty() { run_clips(humanoid, &run)? } else { load_clips(humanoid, &clip)? };
             // One JSON line per clip, so that a failing clip cannot hide behind an average.
-            for clip in run_clips(humanoid, &run)? {
+            for clip in clips {
                 let report = evaluate(humanoid, &policy_net, &clip, &cfg, episodes.max(1), kicks, 12345)?;
                 println!("{}", serde_json::to_string(&report)?);
             }

@@ -1,7 +1,10 @@
 //! The paper's evaluation: metrics as plain functions of recorded rollouts (so they can be
-//! checked on hand-made traces), and the [`protocols`] that produce those rollouts.
+//! checked on hand-made traces), the [`protocols`] that produce those rollouts, and the
+//! [`sweep`] that runs a protocol over models and sampler points, stores every trial and writes
+//! the report.
 
 pub mod protocols;
+pub mod sweep;
 
 /// Mean and (population) standard deviation.
 pub fn mean_std(values: &[f64]) -> (f64, f64) {

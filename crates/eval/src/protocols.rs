@@ -107,20 +107,24 @@ pub fn joystick(
     Ok((0..trials).map(|e| joystick_trial(&r, e)).collect())
 }
 
+/// The achieved yaw rate (rad/s) of each step of environment `e` before any fall.
+pub fn yaw_rates(r: &Rollout, e: usize) -> Vec<f64> {
+    let yaw = |k: usize| {
+        let q = r.qpos(e, k);
+        heading(quat_from_wxyz([q[3], q[4], q[5], q[6]].map(f64::from)))
+    };
+    (0..r.survived[e]).map(|k| wrap_angle(yaw(k + 1) - yaw(k)) * CONTROL_HZ).collect()
+}
+
 /// Commanded against achieved velocities of one environment of a rollout.
 pub fn joystick_trial(r: &Rollout, e: usize) -> JoystickTrial {
     let steps = r.survived[e];
     let (mut cmd, mut got, mut yaw_err) = (Vec::new(), Vec::new(), 0.0);
-    for k in 0..steps {
+    for (k, rate) in yaw_rates(r, e).into_iter().enumerate() {
         let c = r.command(e, k);
         let s = r.state(e, k + 1);
         cmd.push([f64::from(c[0]), f64::from(c[1])]);
         got.push([f64::from(s[offset::ROOT_VEL]), f64::from(s[offset::ROOT_VEL + 1])]);
-        let yaw = |k: usize| {
-            let q = r.qpos(e, k);
-            heading(quat_from_wxyz([q[3], q[4], q[5], q[6]].map(f64::from)))
-        };
-        let rate = wrap_angle(yaw(k + 1) - yaw(k)) * CONTROL_HZ;
         yaw_err += (rate - f64::from(c[2])).powi(2);
     }
     JoystickTrial {

@@ -197,6 +197,22 @@ struct ModelMeta {
     dataset: String,
 }
 
+impl ModelMeta {
+    /// The metadata of a model or checkpoint file, every value checked.
+    fn read(file: &TensorFile) -> Result<Self, ModelError> {
+        let meta: ModelMeta =
+            serde_json::from_str(file.meta("model")?).map_err(|e| file.error(format!("metadata 'model': {e}")))?;
+        meta.config.validate().and_then(|()| meta.objective.validate()).map_err(|e| file.error(e))?;
+        let expected = TokenLayout { spec: meta.config.spec(), ..meta.layout };
+        let sizes = (1..=4096).contains(&meta.layout.state_dim) && (1..=4096).contains(&meta.layout.action_dim);
+        if meta.layout != expected || !sizes {
+            let message = format!("the token layout {:?} does not fit the model's window", meta.layout);
+            return Err(file.error(message).into());
+        }
+        Ok(meta)
+    }
+}
+
 impl Trainer {
     /// Training of `model` (fresh: [`TrajectoryModel::new`]) on the windows of the dataset
     /// whose shard checksums are `dataset_key`.
@@ -209,18 +225,7 @@ impl Trainer {
     /// dataset.
     pub fn resume(dir: &Path, fresh: Trainer) -> Result<Self, ModelError> {
         let file = TensorFile::open(&dir.join(CHECKPOINT_FILE))?;
-        let meta: ModelMeta =
-            serde_json::from_str(file.meta("model")?).map_err(|e| file.error(format!("metadata 'model': {e}")))?;
-        meta.config.validate().and_then(|()| meta.objective.validate()).map_err(|e| file.error(e))?;
-        let expected = TokenLayout { spec: meta.config.spec(), ..meta.layout };
-        if meta.layout != expected
-            || !(1..=4096).contains(&meta.layout.state_dim)
-            || !(1..=4096).contains(&meta.layout.action_dim)
-        {
-            return Err(file
-                .error(format!("the token layout {:?} does not fit the model's window", meta.layout))
-                .into());
-        }
+        let meta = ModelMeta::read(&file)?;
         let mut t = fresh;
         let ours = t.meta();
         let differs = |what: &str, a: String, b: String| {
@@ -375,18 +380,7 @@ impl TrajectoryModel {
         if file.meta("format")? != FORMAT {
             return Err(file.error(format!("not a {FORMAT} file")).into());
         }
-        let meta: ModelMeta =
-            serde_json::from_str(file.meta("model")?).map_err(|e| file.error(format!("metadata 'model': {e}")))?;
-        meta.config.validate().and_then(|()| meta.objective.validate()).map_err(|e| file.error(e))?;
-        let expected = TokenLayout { spec: meta.config.spec(), ..meta.layout };
-        if meta.layout != expected
-            || !(1..=4096).contains(&meta.layout.state_dim)
-            || !(1..=4096).contains(&meta.layout.action_dim)
-        {
-            return Err(file
-                .error(format!("the token layout {:?} does not fit the model's window", meta.layout))
-                .into());
-        }
+        let meta = ModelMeta::read(&file)?;
         let (stats, _) = Stats::load(&dir.join(STATS_FILE))?;
         if stats.spec != meta.layout.spec {
             return Err(ModelError::Invalid(format!(

@@ -351,7 +351,8 @@ mod tests {
     fn ticks_end_on_absurd_ranges() {
         assert!(ticks(1e18, 1e18 + 100.0).len() <= 12);
         assert!(ticks(-f64::MAX, f64::MAX).len() <= 12);
-        let chart = Chart::new("t", "x", "y").series(Series::line("a", vec![(1e18, 1.0), (1e18 + 50.0, 2.0), (f64::INFINITY, 3.0)]));
+        let chart = Chart::new("t", "x", "y")
+            .series(Series::line("a", vec![(1e18, 1.0), (1e18 + 50.0, 2.0), (f64::INFINITY, 3.0)]));
         assert!(!chart.svg().is_empty());
     }
 

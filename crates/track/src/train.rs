@@ -639,7 +639,8 @@ impl Checkpoint {
 
     /// The config stored with the policy.
     pub fn config(&self) -> Result<TrackConfig, TrackError> {
-        let cfg: TrackConfig = serde_json::from_str(&self.meta("config")?).map_err(|e| self.bad(format!("config: {e}")))?;
+        let cfg: TrackConfig =
+            serde_json::from_str(&self.meta("config")?).map_err(|e| self.bad(format!("config: {e}")))?;
         cfg.validate().map_err(|e| self.bad(e.to_string()))?;
         Ok(cfg)
     }

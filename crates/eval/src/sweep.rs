@@ -1,0 +1,302 @@
+//! The orchestration of an evaluation, apart from any command line: every model at every
+//! sampler point, raw per-trial rows stored and reused ([`Store`]), summaries, a plot against the
+//! swept value, and a section of `report.md` ([`finish`]). A protocol ([`crate::protocols`])
+//! produces the rows; [`sweep`] decides which points still need them.
+
+use crate::mean_std;
+use crate::protocols::{Bench, Point};
+use flowmimic_model::TrajectoryModel;
+use flowmimic_motion::Clip;
+use flowmimic_plot::{Chart, Series};
+use flowmimic_sim::Humanoid;
+use sha2::{Digest, Sha256};
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// Errors of a sweep: the protocol's, or writing its files.
+pub type Error = Box<dyn std::error::Error + Send + Sync>;
+pub type Result<T> = std::result::Result<T, Error>;
+
+/// A loaded model and its label.
+pub struct EvalModel {
+    pub label: String,
+    pub dir: PathBuf,
+    pub model: TrajectoryModel,
+    /// SHA-256 of the model's weights and statistics: stored results are keyed by it, so a
+    /// retrained model in the same folder is evaluated anew.
+    pub content: String,
+}
+
+impl EvalModel {
+    /// A model loaded from `dir` under `label`, with its content hash.
+    pub fn new(label: &str, dir: &Path, model: TrajectoryModel) -> Result<Self> {
+        let mut h = Sha256::new();
+        for file in [flowmimic_model::train::MODEL_FILE, flowmimic_model::train::STATS_FILE] {
+            h.update(flowmimic_io::read(&dir.join(file))?);
+        }
+        let content = format!("{:x}", h.finalize());
+        Ok(Self { label: label.to_string(), dir: dir.into(), model, content })
+    }
+
+    pub fn bench<'a>(&'a self, humanoid: &'a Arc<Humanoid>, clip: &'a Clip) -> Bench<'a> {
+        Bench { model: &self.model, humanoid, clip, name: &self.label }
+    }
+}
+
+/// Raw per-trial rows of one experiment, keyed by point, persisted as CSV.
+pub struct Store {
+    path: PathBuf,
+    columns: Vec<&'static str>,
+    rows: BTreeMap<String, Vec<Vec<f64>>>,
+}
+
+impl Store {
+    const KEY: &'static str = "model,objective,horizon,nfe,scale,gradient,execute,seed,trial";
+
+    pub fn open(path: PathBuf, columns: &[&'static str]) -> Self {
+        let mut rows: BTreeMap<String, Vec<Vec<f64>>> = BTreeMap::new();
+        let text = flowmimic_io::read_to_string(&path).unwrap_or_default();
+        let mut lines = text.lines();
+        let header = format!("{},{}", Self::KEY, columns.join(","));
+        if lines.next() == Some(header.as_str()) {
+            for line in lines {
+                let f: Vec<&str> = line.split(',').collect();
+                let values: Option<Vec<f64>> = f.get(9..).map(|v| v.iter().filter_map(|x| x.parse().ok()).collect());
+                if let Some(v) = values.filter(|v| v.len() == columns.len()) {
+                    rows.entry(f[..8].join(",")).or_default().push(v);
+                }
+            }
+        }
+        Self { path, columns: columns.to_vec(), rows }
+    }
+
+    /// The point's key: the model (label, and a hash of its content and the protocol's
+    /// settings: episode length, start clip, reference dataset), and the sampler settings.
+    fn key(m: &EvalModel, settings: &str, point: Point) -> String {
+        let h = m.model.layout().spec.horizon;
+        let (nfe, w, k, seed) = (point.nfe, point.scale, point.execute, point.seed);
+        let g = serde_json::to_string(&point.gradient).expect("json");
+        let inputs = format!("{:x}", Sha256::digest(format!("{}\0{settings}", m.content)));
+        let model = format!("{}@{}", m.label, &inputs[..12]);
+        format!("{model},{},{h},{nfe},{w},{},{k},{seed}", m.model.objective.name(), g.trim_matches('"'))
+    }
+
+    /// The point's rows: stored ones when complete, else computed by `run` and stored.
+    pub fn point(
+        &mut self,
+        m: &EvalModel,
+        settings: &str,
+        point: Point,
+        trials: usize,
+        run: impl FnOnce() -> Result<Vec<Vec<f64>>>,
+    ) -> Result<Vec<Vec<f64>>> {
+        let key = Self::key(m, settings, point);
+        if let Some(rows) = self.rows.get(&key).filter(|r| r.len() == trials) {
+            eprintln!("{key}: reusing {} stored trials from {}", rows.len(), self.path.display());
+            return Ok(rows.clone());
+        }
+        let rows = run()?;
+        self.rows.insert(key, rows.clone());
+        self.save()?;
+        Ok(rows)
+    }
+
+    fn save(&self) -> Result<()> {
+        let mut text = format!("{},{}\n", Self::KEY, self.columns.join(","));
+        for (key, rows) in &self.rows {
+            for (t, row) in rows.iter().enumerate() {
+                let values: Vec<String> = row.iter().map(|v| format!("{v}")).collect();
+                writeln!(text, "{key},{t},{}", values.join(","))?;
+            }
+        }
+        Ok(flowmimic_io::write_atomic(&self.path, text.as_bytes())?)
+    }
+}
+
+/// Mean and standard deviation of each column.
+fn summarise(rows: &[Vec<f64>], columns: &[&str]) -> BTreeMap<String, (f64, f64)> {
+    columns
+        .iter()
+        .enumerate()
+        .map(|(j, c)| {
+            (c.to_string(), mean_std(&rows.iter().map(|r| r[j]).filter(|v| v.is_finite()).collect::<Vec<_>>()))
+        })
+        .collect()
+}
+
+/// One summarised point for the JSON and the report.
+#[derive(serde::Serialize)]
+pub struct Summary {
+    pub model: String,
+    pub dir: String,
+    pub objective: String,
+    pub horizon: usize,
+    pub nfe: usize,
+    pub scale: f32,
+    pub execute: usize,
+    pub seed: u64,
+    pub trials: usize,
+    pub mean: BTreeMap<String, f64>,
+    pub std: BTreeMap<String, f64>,
+}
+
+pub fn summary(m: &EvalModel, point: Point, rows: &[Vec<f64>], columns: &[&str]) -> Summary {
+    let s = summarise(rows, columns);
+    Summary {
+        model: m.label.clone(),
+        dir: m.dir.display().to_string(),
+        objective: m.model.objective.name().into(),
+        horizon: m.model.layout().spec.horizon,
+        nfe: point.nfe,
+        scale: point.scale,
+        execute: point.execute,
+        seed: point.seed,
+        trials: rows.len(),
+        mean: s.iter().map(|(k, v)| (k.clone(), v.0)).collect(),
+        std: s.iter().map(|(k, v)| (k.clone(), v.1)).collect(),
+    }
+}
+
+/// Machine facts for the report.
+fn machine() -> String {
+    let cpu = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|t| {
+            t.lines()
+                .find(|l| l.starts_with("model name"))
+                .map(|l| l.split(':').nth(1).unwrap_or("").trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    format!("{cpu}, {cores} threads")
+}
+
+/// Writes the JSON summary, appends a report section, and says where everything went.
+pub fn finish(
+    out: &Path,
+    models: &[EvalModel],
+    (name, title): (&str, &str),
+    notes: &str,
+    summaries: &[Summary],
+    table: String,
+) -> Result<()> {
+    flowmimic_io::write_atomic(
+        &out.join(format!("{name}.json")),
+        serde_json::to_string_pretty(&summaries)?.as_bytes(),
+    )?;
+    let report = out.join("report.md");
+    let mut text = flowmimic_io::read_to_string(&report).unwrap_or_else(|_| "# flowmimic evaluation report\n".into());
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let described: Vec<String> = models
+        .iter()
+        .map(|m| {
+            let c = &m.model.config;
+            format!(
+                "`{}` = `{}` ({}, N {} H {}, d {} x {} layers, {} heads)",
+                m.label,
+                m.dir.display(),
+                m.model.objective.name().to_uppercase(),
+                c.history,
+                c.horizon,
+                c.d_model,
+                c.layers,
+                c.heads
+            )
+        })
+        .collect();
+    write!(
+        text,
+        "\n## {title}\n\n`flowmimic {}` on {} ({})\n\nModels: {}.\n\n{notes}\n\n{table}\nRaw trials: `{name}.csv`; summary: `{name}.json`.\n\n![{name}]({name}.png)\n",
+        args.join(" "),
+        machine(),
+        chrono_now(),
+        described.join("; ")
+    )?;
+    flowmimic_io::write_atomic(&report, text.as_bytes())?;
+    println!("{table}");
+    eprintln!("wrote {name}.csv, {name}.json, {name}.png/svg and appended to {}", report.display());
+    Ok(())
+}
+
+/// UTC date and time from the system clock (no extra dependency for one timestamp).
+fn chrono_now() -> String {
+    let secs = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs());
+    let days = secs / 86400;
+    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let z = days as i64 + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    format!("{year}-{month:02}-{day:02} {:02}:{:02} UTC", (secs % 86400) / 3600, (secs % 3600) / 60)
+}
+
+/// Per-trial rows of one point.
+pub type Rows = Result<Vec<Vec<f64>>>;
+
+/// How one experiment is written down: file stem, report heading, raw columns, the column
+/// plotted against the swept value, and the Markdown table's header.
+pub struct Experiment {
+    pub name: &'static str,
+    /// What else determines the results (episode length, start clip, reference data).
+    pub settings: String,
+    pub title: &'static str,
+    pub columns: &'static [&'static str],
+    pub plot: &'static str,
+    pub x_label: &'static str,
+    pub y_label: &'static str,
+    pub header: &'static str,
+}
+
+/// Runs (or reuses) every model at every point, one row per trial; plots `plot` against the
+/// swept value (NFE when `by_nfe`, else the guidance scale), and the fall rate when recorded;
+/// returns the summaries and the Markdown table.
+pub fn sweep(
+    exp: &Experiment,
+    out: &Path,
+    models: &[EvalModel],
+    (points, trials, by_nfe): (&[Point], usize, bool),
+    mut run: impl FnMut(&EvalModel, Point) -> Rows,
+    row: impl Fn(&EvalModel, &Summary) -> String,
+) -> Result<(Vec<Summary>, String)> {
+    let mut stored = Store::open(out.join(format!("{}.csv", exp.name)), exp.columns);
+    let x_of = |p: &Point| if by_nfe { p.nfe as f64 } else { f64::from(p.scale) };
+    let mut chart = Chart::new(exp.title, exp.x_label, exp.y_label);
+    let mut falls = Chart::new(&format!("{}: falls", exp.title), exp.x_label, "fall rate");
+    if by_nfe {
+        chart = chart.log_x();
+        falls = falls.log_x();
+    }
+    let (mut summaries, mut table) = (Vec::new(), format!("{}\n", exp.header));
+    for m in models {
+        let (mut line, mut band, mut fell) = (Vec::new(), Vec::new(), Vec::new());
+        for &point in points {
+            eprintln!("{}: {} NFE {} w {} ({trials} trials)", exp.name, m.label, point.nfe, point.scale);
+            let rows = stored.point(m, &exp.settings, point, trials, || run(m, point))?;
+            let s = summary(m, point, &rows, exp.columns);
+            let (mean, std) = (s.mean[exp.plot], s.std[exp.plot]);
+            line.push((x_of(&point), mean));
+            band.push((x_of(&point), mean - std, mean + std));
+            if let Some(f) = s.mean.get("fell") {
+                fell.push((x_of(&point), *f));
+            }
+            table.push_str(&row(m, &s));
+            table.push('\n');
+            summaries.push(s);
+        }
+        let series = Series::line(&m.label, line);
+        chart = chart.series(if trials > 1 { series.with_band(band) } else { series });
+        falls = falls.series(Series::line(&m.label, fell));
+    }
+    chart.save(&out.join(exp.name))?;
+    if exp.columns.contains(&"fell") {
+        falls.save(&out.join(format!("{}_falls", exp.name)))?;
+    }
+    Ok((summaries, table))
+}
