@@ -74,7 +74,7 @@ pub enum EvalCommand {
     Joystick {
         #[command(flatten)]
         common: Common,
-        #[arg(long, value_delimiter = ',', default_value = "0,10,20,40")]
+        #[arg(long, value_delimiter = ',', default_value = "0,3,10,30")]
         scales: Vec<f32>,
         #[arg(long, default_value_t = 5)]
         nfe: usize,
@@ -84,7 +84,7 @@ pub enum EvalCommand {
     Reach {
         #[command(flatten)]
         common: Common,
-        #[arg(long, value_delimiter = ',', default_value = "0,30,100")]
+        #[arg(long, value_delimiter = ',', default_value = "0,3,10,30")]
         scales: Vec<f32>,
         #[arg(long, default_value_t = 5)]
         nfe: usize,
@@ -94,7 +94,7 @@ pub enum EvalCommand {
     Compose {
         #[command(flatten)]
         common: Common,
-        #[arg(long, value_delimiter = ',', default_value = "30")]
+        #[arg(long, value_delimiter = ',', default_value = "10")]
         scales: Vec<f32>,
         #[arg(long, default_value_t = 5)]
         nfe: usize,

@@ -48,7 +48,7 @@ pub struct RunArgs {
     /// Guidance scale w (v' = v - w grad G); each task's gradient is scaled to its error
     /// (m/s, rad, m) in the model's normalised coordinates, so w means the same for every
     /// task; 0 for none.
-    #[arg(long, default_value_t = 2.0)]
+    #[arg(long, default_value_t = 10.0)]
     pub guidance_scale: f32,
     /// How guidance takes its gradient: through-network (a vector-Jacobian product through the
     /// denoiser, so a cost on states reaches the executed action) or cost-only.
