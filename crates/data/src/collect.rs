@@ -35,6 +35,10 @@ pub struct CollectConfig {
     pub rollout_steps: usize,
     /// Radians of PD-target noise per unit of sigma (see the module docs).
     pub noise_unit_rad: f64,
+    /// Steps dropped from the end of an episode that ends in a tracking failure (0 keeps
+    /// them): what an expert does while it is failing is not worth imitating.
+    #[serde(default)]
+    pub drop_before_failure: usize,
     pub seed: u64,
 }
 
@@ -44,6 +48,7 @@ impl Default for CollectConfig {
             noise: vec![(0.12, 16), (0.16, 12), (0.24, 6), (0.36, 6)],
             rollout_steps: 0,
             noise_unit_rad: 0.4,
+            drop_before_failure: 0,
             seed: 0,
         }
     }
@@ -58,7 +63,10 @@ impl CollectConfig {
         if let Some((sigma, _)) = self.noise.iter().find(|(s, _)| !(s.is_finite() && *s >= 0.0)) {
             return Err(format!("collect.noise has sigma {sigma}; sigmas must be finite and not negative"));
         }
-        if self.noise.iter().map(|n| n.1).sum::<usize>() > 100_000 || self.rollout_steps > 10_000_000 {
+        if self.noise.iter().map(|n| n.1).sum::<usize>() > 100_000
+            || self.rollout_steps > 10_000_000
+            || self.drop_before_failure > 10_000_000
+        {
             return Err("collect.noise or rollout_steps asks for more than a machine holds".into());
         }
         if !(self.noise_unit_rad.is_finite() && self.noise_unit_rad > 0.0) {
@@ -84,6 +92,8 @@ struct Lane {
     sigma: f32,
     noise: Normal<f32>,
     shard: Shard,
+    /// Where the current episode starts in `shard`.
+    episode_start: usize,
     episodes: usize,
     falls: usize,
 }
@@ -114,6 +124,7 @@ pub fn collect(
                 noise: Normal::new(0.0, sigma)
                     .map_err(|e| DataError::Invalid(format!("collect.noise sigma {sigma}: {e}")))?,
                 shard: Shard::default(),
+                episode_start: 0,
                 episodes: 1,
                 falls: 0,
             })
@@ -159,6 +170,14 @@ pub fn collect(
                 s.done.push(u8::from(done));
                 if matches!(ending, Ending::Failed | Ending::Diverged) {
                     lane.falls += 1;
+                    let keep = s.steps().saturating_sub(cfg.drop_before_failure).max(lane.episode_start);
+                    s.truncate(keep);
+                    if let Some(d) = s.done.last_mut().filter(|_| keep > lane.episode_start) {
+                        *d = 1;
+                    }
+                }
+                if done {
+                    lane.episode_start = lane.shard.steps();
                 }
                 if done && !last {
                     lane.episodes += 1;
@@ -170,7 +189,8 @@ pub fn collect(
             .collect();
         endings.into_iter().collect::<Result<(), _>>()?;
     }
-    let mut stats = CollectStats { steps: n * steps, seconds: started.elapsed().as_secs_f64(), falls: Vec::new() };
+    let kept = lanes.iter().map(|l| l.shard.steps()).sum();
+    let mut stats = CollectStats { steps: kept, seconds: started.elapsed().as_secs_f64(), falls: Vec::new() };
     for &(sigma, _) in &cfg.noise {
         let group = lanes.iter().filter(|l| l.sigma == sigma);
         let (episodes, falls) = group.fold((0, 0), |(e, f), l| (e + l.episodes, f + l.falls));
@@ -178,7 +198,7 @@ pub fn collect(
     }
     let mut shard = Shard::default();
     for lane in lanes {
-        debug_assert_eq!(lane.shard.state.len(), steps * STATE_DIM);
+        debug_assert!(lane.shard.state.len() <= steps * STATE_DIM);
         shard.extend_lane(lane.shard);
     }
     // Rollout ids: one per episode, in order.

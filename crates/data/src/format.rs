@@ -94,6 +94,18 @@ impl Shard {
         self.done.len()
     }
 
+    /// Keeps the first `steps` steps.
+    pub fn truncate(&mut self, steps: usize) {
+        self.state.truncate(steps * STATE_DIM);
+        self.action.truncate(steps * NUM_DOFS);
+        self.noisy_action.truncate(steps * NUM_DOFS);
+        self.root_pose.truncate(steps * 3);
+        self.done.truncate(steps);
+        self.sigma.truncate(steps);
+        self.rollout.truncate(steps);
+        self.frame.truncate(steps);
+    }
+
     /// Appends another buffer's steps.
     pub fn extend_lane(&mut self, other: Shard) {
         self.state.extend(other.state);

@@ -144,6 +144,16 @@ fn collection_writes_checked_shards_and_appends_without_rewriting() {
         first_bytes,
         "adding b left a's shard alone"
     );
+    // An untrained expert fails; dropping the steps before each failure keeps fewer, and every
+    // episode still ends with a done flag.
+    let clip = generate(&h, "c", &GaitParams { duration: 3.0, ..Default::default() }).unwrap().0;
+    let long = CollectConfig { rollout_steps: 60, ..collect_cfg.clone() };
+    let (all_steps, stats) = collect(&h, &clip, &expert, &cfg, &long).unwrap();
+    assert!(stats.falls.iter().map(|f| f.2).sum::<usize>() > 0, "the untrained expert fails");
+    let (dropped, _) = collect(&h, &clip, &expert, &cfg, &CollectConfig { drop_before_failure: 5, ..long }).unwrap();
+    assert!(dropped.steps() < all_steps.steps(), "{} vs {}", dropped.steps(), all_steps.steps());
+    assert_eq!(*dropped.done.last().unwrap(), 1);
+    assert_eq!(dropped.done.iter().filter(|&&d| d == 1).count() as u32, dropped.rollout.last().unwrap() + 1);
     let reopened = Dataset::open(&dir).unwrap();
     assert_eq!(reopened.manifest.shards.len(), 2);
     let all = reopened.load_all().unwrap();
