@@ -93,18 +93,6 @@ fn collect_clip(
     Ok(())
 }
 
-fn histogram(values: &[f64], lo: f64, hi: f64, bins: usize) -> Vec<(f64, f64)> {
-    let mut counts = vec![0.0; bins];
-    for v in values {
-        let b = (((v - lo) / (hi - lo)) * bins as f64).floor();
-        if b >= 0.0 && (b as usize) < bins {
-            counts[b as usize] += 1.0;
-        }
-    }
-    let total = values.len().max(1) as f64;
-    counts.iter().enumerate().map(|(b, c)| (lo + (b as f64 + 0.5) * (hi - lo) / bins as f64, c / total)).collect()
-}
-
 pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
     let dir = match cmd {
         DatasetCommand::Stats { dir, history, horizon } => {
@@ -170,10 +158,10 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
     block("hand/ankle rotations", offset::END_ROT, STATE_DIM);
     println!("  {:<28} {a_lo:>8.3} .. {a_hi:>8.3}", format!("actions ({NUM_DOFS}, normalised)"));
     Chart::new("state coverage: root speed", "root speed (m/s)", "fraction of steps")
-        .series(Series::line("root speed", histogram(&speeds, 0.0, 3.0, 30)))
+        .series(Series::line("root speed", flowmimic_plot::histogram(&speeds, 0.0, 3.0, 30)))
         .save(&dir.join("coverage_root_speed"))?;
     Chart::new("state coverage: hand height", "hand height above ground (m)", "fraction of hand samples")
-        .series(Series::line("hands", histogram(&hands, 0.0, 2.0, 40)))
+        .series(Series::line("hands", flowmimic_plot::histogram(&hands, 0.0, 2.0, 40)))
         .save(&dir.join("coverage_hand_height"))?;
     println!("\nwrote coverage_root_speed and coverage_hand_height (.png, .svg) in {}", dir.display());
     crate::motion::print_coverage(&flowmimic_motion::Coverage::of(walking), &dir)

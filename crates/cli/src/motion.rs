@@ -3,7 +3,7 @@
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use flowmimic_motion::{Clip, Coverage, GaitParams, ImportOptions, Units, UpAxis, WanderParams, coverage, generator};
-use flowmimic_plot::{Chart, Series};
+use flowmimic_plot::{Chart, Series, histogram};
 use flowmimic_sim::Humanoid;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -320,7 +320,7 @@ pub(crate) fn print_coverage(cov: &Coverage, dir: &Path) -> Result<()> {
             .enumerate()
     {
         Chart::new(&format!("coverage: {}", names[k]), names[k], "fraction of steps")
-            .series(Series::line(stem, cov.histogram(k, lo, hi, 30)))
+            .series(Series::line(stem, histogram(&cov.velocities.iter().map(|v| v[k]).collect::<Vec<_>>(), lo, hi, 30)))
             .save(&dir.join(stem))?;
     }
     println!("wrote coverage_forward, coverage_sideways and coverage_yaw_rate (.png, .svg) in {}", dir.display());

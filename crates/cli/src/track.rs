@@ -6,7 +6,7 @@ use clap::Subcommand;
 use flowmimic_motion::Clip;
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::Humanoid;
-use flowmimic_track::train::{Checkpoint, IterationLog};
+use flowmimic_track::train::{Checkpoint, ClipLog, IterationLog};
 use flowmimic_track::{TrackConfig, Trainer, evaluate};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -123,28 +123,18 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
 
 const CLIPS_CSV_HEADER: &str = "iteration,clip,steps,episodes,failures,body_pos_error";
 
-/// Per clip over the last `iterations` iterations of clips.csv: failures per minute of tracked
-/// motion and the body error, worst first (printed at each checkpoint of a multi-clip run).
-fn print_clip_summary(names: &[String], rows: &[String], iterations: usize) {
+/// Per clip since the last checkpoint: failures per minute of tracked motion and the body
+/// error, worst first (printed at each checkpoint of a multi-clip run).
+fn print_clip_summary(names: &[String], recent: &[ClipLog]) {
     if names.len() < 2 {
         return;
     }
-    let recent = &rows[rows.len().saturating_sub(iterations * names.len())..];
-    let mut per_clip: Vec<(f64, f64, &String)> = names
+    let mut per_clip: Vec<(&String, &ClipLog)> = names.iter().zip(recent).collect();
+    per_clip.sort_by(|a, b| b.1.failures_per_minute().total_cmp(&a.1.failures_per_minute()));
+    let line: Vec<String> = per_clip
         .iter()
-        .map(|name| {
-            let (mut steps, mut failures, mut error) = (0.0, 0.0, 0.0);
-            for f in recent.iter().map(|r| r.split(',').collect::<Vec<_>>()).filter(|f| f[1] == name.as_str()) {
-                let n: f64 = f[2].parse().unwrap_or(0.0);
-                steps += n;
-                failures += f[4].parse::<f64>().unwrap_or(0.0);
-                error += n * f[5].parse::<f64>().unwrap_or(0.0);
-            }
-            (failures / (steps.max(1.0) / 1800.0), error / steps.max(1.0), name)
-        })
+        .map(|(n, c)| format!("{n} {:.1}/min {:.1} cm", c.failures_per_minute(), 100.0 * c.body_pos_error))
         .collect();
-    per_clip.sort_by(|a, b| b.0.total_cmp(&a.0));
-    let line: Vec<String> = per_clip.iter().map(|(f, e, n)| format!("{n} {f:.1}/min {:.1} cm", 100.0 * e)).collect();
     eprintln!("\rfailures per minute of motion, body error: {}", line.join(", "));
 }
 
@@ -165,6 +155,7 @@ pub fn train(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, out: &Path, cfg: &Track
     let mut log = CsvLog::open(log_path.clone(), IterationLog::CSV_HEADER, resume.then_some(trainer.iteration));
     let mut clip_log = CsvLog::open(out.join("clips.csv"), CLIPS_CSV_HEADER, resume.then_some(trainer.iteration));
     let names: Vec<String> = trainer.references.iter().map(|r| r.clip.name.clone()).collect();
+    let mut since_checkpoint = vec![ClipLog::default(); names.len()];
     flowmimic_io::write_atomic(&out.join("config.json"), serde_json::to_string_pretty(&cfg)?.as_bytes())?;
     for (k, reference) in trainer.references.iter().enumerate() {
         reference.clip.save(&out.join(run_clip_file(k)))?;
@@ -185,7 +176,8 @@ pub fn train(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, out: &Path, cfg: &Track
     while trainer.iteration < cfg.iterations {
         let line: IterationLog = trainer.iterate().context("training stopped; the last checkpoint is intact")?;
         log.rows.push(line.csv_row());
-        for (name, c) in names.iter().zip(&line.clips) {
+        for ((name, c), recent) in names.iter().zip(&line.clips).zip(&mut since_checkpoint) {
+            recent.merge(c);
             clip_log.rows.push(format!(
                 "{},{name},{},{},{},{:.4}",
                 line.iteration, c.steps, c.episodes, c.failures, c.body_pos_error
@@ -196,7 +188,8 @@ pub fn train(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, out: &Path, cfg: &Track
             trainer.save(&policy_path)?;
             log.save()?;
             clip_log.save()?;
-            print_clip_summary(&names, &clip_log.rows, cfg.checkpoint_every.max(1));
+            print_clip_summary(&names, &since_checkpoint);
+            since_checkpoint.fill(ClipLog::default());
             plot_curves(out, &log.rows)?;
         }
         let status = format!(

@@ -197,15 +197,7 @@ pub fn run(
         }
         let len = traj.len();
         if !replan.is_empty() {
-            let grad = |x: &[f32], n: usize| -> Vec<f32> {
-                let mut g = vec![0.0; n * len];
-                for (i, cost) in costs.iter().enumerate().take(n) {
-                    if let Some(c) = cost {
-                        c.guidance_grad(&x[i * len..(i + 1) * len], future_std, &mut g[i * len..(i + 1) * len]);
-                    }
-                }
-                g
-            };
+            let grad = |x: &[f32], n: usize| crate::costs::batch_guidance_grad(&costs, future_std, x, n);
             let guided = config.guidance_scale > 0.0 && costs.iter().any(Option::is_some);
             let guidance = guided.then_some(TaskGuidance {
                 weight: config.guidance_scale,

@@ -303,6 +303,19 @@ impl Sum {
     }
 }
 
+/// The guidance gradient of a batch of trajectories (`x`: `n` rows, one per cost), each row
+/// under its own cost (`None`: not guided), as [`Sum::guidance_grad`] gives it.
+pub fn batch_guidance_grad(costs: &[Option<Sum>], std: &[f32], x: &[f32], n: usize) -> Vec<f32> {
+    let len = x.len() / n.max(1);
+    let mut g = vec![0.0; x.len()];
+    for (i, cost) in costs.iter().enumerate().take(n) {
+        if let Some(c) = cost {
+            c.guidance_grad(&x[i * len..(i + 1) * len], std, &mut g[i * len..(i + 1) * len]);
+        }
+    }
+    g
+}
+
 impl Cost for Sum {
     fn cost(&self, tau: &[f32]) -> f32 {
         self.terms.iter().map(|(w, c)| w * c.cost(tau)).sum()

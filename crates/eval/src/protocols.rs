@@ -302,16 +302,10 @@ pub fn guidance_effect(
         }
         let b = env.bodies();
         let cost = task.cost(traj, 0.0, &CharFrame::from_root(b.pos[0], b.rot[0]))?;
-        costs.push(cost.ok_or(ControlError::Start("the task asks nothing to guide".into()))?);
+        costs.push(Some(cost.ok_or(ControlError::Start("the task asks nothing to guide".into()))?));
     }
     let (len, std) = (traj.len(), &bench.model.norm.std[layout.cond_len()..]);
-    let grad = |x: &[f32], n: usize| -> Vec<f32> {
-        let mut g = vec![0.0; n * len];
-        for (i, c) in costs.iter().enumerate().take(n) {
-            c.guidance_grad(&x[i * len..(i + 1) * len], std, &mut g[i * len..(i + 1) * len]);
-        }
-        g
-    };
+    let grad = |x: &[f32], n: usize| flowmimic_control::costs::batch_guidance_grad(&costs, std, x, n);
     let nfe = point.nfe;
     let steps = controller::default_guidance_steps(nfe);
     let guidance = TaskGuidance { weight: point.scale, grad: &grad, steps: steps.0..steps.1, gradient: point.gradient };
@@ -326,7 +320,7 @@ pub fn guidance_effect(
         f64::from(sum) / (samples * flowmimic_sim::NUM_DOFS) as f64
     };
     let error = |x: &[f32]| -> f64 {
-        costs.iter().enumerate().map(|(i, c)| f64::from(c.error(&x[i * len..(i + 1) * len]))).sum::<f64>()
+        costs.iter().flatten().enumerate().map(|(i, c)| f64::from(c.error(&x[i * len..(i + 1) * len]))).sum::<f64>()
             / samples as f64
     };
     let h = traj.horizon;

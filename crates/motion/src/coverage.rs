@@ -44,7 +44,7 @@ pub struct Coverage {
     pub sidestep: f64,
     /// Ranges seen: forward speed, sideways speed, yaw rate (min, max).
     pub ranges: [(f64, f64); 3],
-    /// The velocities themselves, for histograms.
+    /// The velocities themselves (forward, sideways, yaw rate), for histograms.
     #[serde(skip)]
     pub velocities: Vec<[f64; 3]>,
 }
@@ -67,19 +67,5 @@ impl Coverage {
             ranges,
             velocities,
         }
-    }
-
-    /// Fraction of steps per bin of one quantity (0 forward, 1 sideways, 2 yaw rate) on
-    /// `[lo, hi)`, as (bin centre, fraction).
-    pub fn histogram(&self, quantity: usize, lo: f64, hi: f64, bins: usize) -> Vec<(f64, f64)> {
-        let mut counts = vec![0.0; bins];
-        for v in &self.velocities {
-            let b = ((v[quantity] - lo) / (hi - lo) * bins as f64).floor();
-            if b >= 0.0 && (b as usize) < bins {
-                counts[b as usize] += 1.0;
-            }
-        }
-        let total = self.velocities.len().max(1) as f64;
-        counts.iter().enumerate().map(|(b, c)| (lo + (b as f64 + 0.5) * (hi - lo) / bins as f64, c / total)).collect()
     }
 }

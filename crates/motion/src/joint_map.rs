@@ -301,10 +301,9 @@ impl<'a> Tree<'a> {
     fn branch_below(&self, from: usize) -> Option<usize> {
         let mut j = from;
         loop {
-            match self.long_children(j).len() {
-                0 => return None,
-                1 => j = self.long_children(j)[0],
-                _ if self.long_children(j).len() >= 3 => return Some(j),
+            match self.long_children(j)[..] {
+                [only] => j = only,
+                [_, _, _, ..] => return Some(j),
                 _ => return None,
             }
         }

@@ -21,6 +21,20 @@ const BOTTOM: f64 = 60.0;
 const PALETTE: [[u8; 3]; 6] =
     [[31, 119, 180], [214, 39, 40], [44, 160, 44], [255, 127, 14], [148, 103, 189], [127, 127, 127]];
 
+/// Fraction of `values` in each of `bins` equal bins on `[lo, hi)`, as (bin centre, fraction);
+/// values outside count in the total but in no bin.
+pub fn histogram(values: &[f64], lo: f64, hi: f64, bins: usize) -> Vec<(f64, f64)> {
+    let mut counts = vec![0.0; bins];
+    for v in values {
+        let b = (((v - lo) / (hi - lo)) * bins as f64).floor();
+        if b >= 0.0 && (b as usize) < bins {
+            counts[b as usize] += 1.0;
+        }
+    }
+    let total = values.len().max(1) as f64;
+    counts.iter().enumerate().map(|(b, c)| (lo + (b as f64 + 0.5) * (hi - lo) / bins as f64, c / total)).collect()
+}
+
 /// One line, optionally with a shaded band (e.g. mean +- std).
 #[derive(Clone, Debug)]
 pub struct Series {

@@ -229,6 +229,16 @@ pub struct ClipLog {
 }
 
 impl ClipLog {
+    /// Adds another stretch of the same clip's training (the error weighted by steps).
+    pub fn merge(&mut self, other: &ClipLog) {
+        let steps = self.steps + other.steps;
+        let weighted = self.body_pos_error * self.steps as f32 + other.body_pos_error * other.steps as f32;
+        self.body_pos_error = weighted / steps.max(1) as f32;
+        self.steps = steps;
+        self.episodes += other.episodes;
+        self.failures += other.failures;
+    }
+
     /// Failures per minute of tracked motion (0 when nothing fails).
     pub fn failures_per_minute(&self) -> f32 {
         self.failures as f32 / (self.steps.max(1) as f32 / (60.0 * flowmimic_sim::CONTROL_HZ as f32))
