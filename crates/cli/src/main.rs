@@ -61,8 +61,8 @@ enum Command {
         #[arg(short, long, default_value = "runs/pipeline")]
         out: PathBuf,
         /// Clips to train on (BVH/DeepMimic imports or generated clips); default the generated
-        /// 10 s straight walk.
-        #[arg(long)]
+        /// 10 s straight walk. Takes several files (`--clip runs/corpus/*.clip.safetensors`).
+        #[arg(long, num_args = 1..)]
         clip: Vec<PathBuf>,
     },
     /// The simulated humanoid: inspect the model, export its MJCF, watch it stand.

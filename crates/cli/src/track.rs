@@ -17,9 +17,9 @@ pub enum TrackCommand {
     /// Writes <out>/policy.safetensors (checkpointed atomically), clip.safetensors (the
     /// reference), log.csv, config.json and learning-curve plots.
     Train {
-        /// Clip file to track (`flowmimic motion import|generate` writes them); repeat it to train
-        /// one reference-conditioned policy on several clips.
-        #[arg(long)]
+        /// Clip files to track (`flowmimic motion import|generate` writes them); several train
+        /// one reference-conditioned policy (`--clip runs/corpus/*.clip.safetensors`).
+        #[arg(long, num_args = 1..)]
         clip: Vec<PathBuf>,
         /// Run directory; default runs/track/<clip name>.
         #[arg(short, long)]
@@ -44,7 +44,7 @@ pub enum TrackCommand {
         #[arg(long, default_value_t = 100)]
         episodes: usize,
         /// Evaluate on these clip files instead of the run's own.
-        #[arg(long)]
+        #[arg(long, num_args = 1..)]
         clip: Vec<PathBuf>,
         /// Apply the survival protocol's kicks (0-0.5 m/s every second).
         #[arg(long)]

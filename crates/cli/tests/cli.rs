@@ -1,32 +1,11 @@
 //! The `flowmimic` binary end to end on the `tiny` preset: the stages hand files to each other
 //! exactly as a user's commands do.
 
-use std::path::{Path, PathBuf};
+mod common;
+
+use common::{flowmimic, ok, tensor_bytes, workdir};
+use std::path::Path;
 use std::process::Command;
-
-fn flowmimic(dir: &Path, args: &[&str]) -> (bool, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_flowmimic"))
-        .current_dir(dir)
-        .args(["--preset", "tiny"])
-        .args(args)
-        .output()
-        .expect("the binary runs");
-    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-    (out.status.success(), text)
-}
-
-fn ok(dir: &Path, args: &[&str]) -> String {
-    let (success, text) = flowmimic(dir, args);
-    assert!(success, "flowmimic {args:?} failed:\n{text}");
-    text
-}
-
-fn workdir(test: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("flowmimic-cli-{test}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
 
 #[test]
 fn stages_connect_through_their_files() {
@@ -77,12 +56,7 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     let (refused, text) = flowmimic(dir, &["train", "data", "--objective", "ddpm", "-o", "fm-part", "--resume"]);
     assert!(!refused && text.contains("objective fm"), "{text}");
     ok(dir, &["train", "data", "--objective", "fm", "-o", "fm-part", "--resume"]);
-    // The tensor bytes after the safetensors header (whose metadata order may vary).
-    let tensors = |p: &str| {
-        let b = std::fs::read(dir.join(p)).unwrap();
-        let header = u64::from_le_bytes(b[..8].try_into().unwrap()) as usize;
-        b[8 + header..].to_vec()
-    };
+    let tensors = |p: &str| tensor_bytes(&dir.join(p));
     assert!(tensors("fm/model.safetensors") == tensors("fm-part/model.safetensors"), "resume is not exact");
     let ddpm = ok(dir, &["train", "data", "--objective", "ddpm", "-o", "ddpm"]);
     assert!(ddpm.contains("DDPM Transformer"), "{ddpm}");
@@ -185,12 +159,8 @@ fn the_pipeline_runs_every_stage_then_skips_what_is_done() {
 /// browser loads it, steps the timeline to frame 10 and takes a screenshot.
 fn viewer_serves_and_draws(dir: &Path, file: &str) {
     use std::io::{BufRead, Read, Write};
-    let mut server = Command::new(env!("CARGO_BIN_EXE_flowmimic"))
-        .current_dir(dir)
-        .args(["--preset", "tiny", "view", file, "--port", "0"])
-        .stdout(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
+    let mut server =
+        common::command(dir, &["view", file, "--port", "0"]).stdout(std::process::Stdio::piped()).spawn().unwrap();
     let mut line = String::new();
     std::io::BufReader::new(server.stdout.take().unwrap()).read_line(&mut line).unwrap();
     let url = line.split_whitespace().nth(1).expect("the viewer prints its address").to_string();

@@ -13,7 +13,7 @@
 
 use crate::trajectory::{Normaliser, Objective, TokenLayout, TrajectoryModel};
 use crate::{ModelConfig, TrainingBatch, ddpm, fm};
-use flowmimic_data::{DataError, Dataset, Stats, window, window_starts};
+use flowmimic_data::{DataError, Dataset, Shard, Stats, window, window_starts};
 use flowmimic_io::tensors::{self, TensorError, TensorFile};
 use flowmimic_nn::Adam;
 use rand::rngs::StdRng;
@@ -113,34 +113,35 @@ impl TrainConfig {
     }
 }
 
-/// All windows of a dataset, interleaved and normalised, split by rollout into training and
-/// validation sets.
+/// A dataset's windows (interleaved and normalised when a batch takes them), split by rollout
+/// into training and validation sets.
 pub struct WindowSet {
     pub layout: TokenLayout,
-    pub train: Vec<f32>,
-    pub validation: Vec<f32>,
+    norm: Normaliser,
+    shards: Vec<Shard>,
+    /// (shard, current step) of every window, by side of the split.
+    train: Vec<(usize, usize)>,
+    validation: Vec<(usize, usize)>,
 }
 
 impl WindowSet {
+    /// Splits the dataset's windows into training and validation. Windows are cut from the
+    /// shards when a batch asks for them, not stored: at H = 16 three hours of rollouts would
+    /// take 6.5 GB as windows, 0.4 GB as shards.
     pub fn from_dataset(
         dataset: &Dataset,
         layout: TokenLayout,
         stats: &Stats,
         validation_fraction: f64,
     ) -> Result<Self, ModelError> {
-        let norm = Normaliser::new(&layout, stats);
-        let w = layout.window_len();
         let (mut train, mut validation) = (Vec::new(), Vec::new());
-        for (s, (_, shard)) in dataset.load_all()?.iter().enumerate() {
+        let shards: Vec<Shard> = dataset.load_all()?.into_iter().map(|(_, shard)| shard).collect();
+        for (s, shard) in shards.iter().enumerate() {
             for t in window_starts(shard, layout.spec) {
-                let win = window(shard, layout.spec, t);
-                let mut row = layout.interleave(&win.states, &win.actions);
-                norm.normalise(&mut row, 0, w);
                 // A rollout goes wholly to one side, so overlapping windows never straddle it.
                 let key = splitmix((s as u64) << 32 | u64::from(shard.rollout[t]));
                 let held_out = ((key >> 11) as f64 / (1u64 << 53) as f64) < validation_fraction;
-                let set = if held_out { &mut validation } else { &mut train };
-                set.extend(row);
+                if held_out { &mut validation } else { &mut train }.push((s, t));
             }
         }
         if train.is_empty() {
@@ -151,15 +152,29 @@ impl WindowSet {
                 layout.spec.horizon
             )));
         }
-        Ok(Self { layout, train, validation })
+        Ok(Self { norm: Normaliser::new(&layout, stats), layout, shards, train, validation })
     }
 
     pub fn train_len(&self) -> usize {
-        self.train.len() / self.layout.window_len()
+        self.train.len()
     }
 
     pub fn validation_len(&self) -> usize {
-        self.validation.len() / self.layout.window_len()
+        self.validation.len()
+    }
+
+    /// The normalised, interleaved windows `rows` of a side, one after another.
+    fn windows(&self, side: &[(usize, usize)], rows: &[usize]) -> Vec<f32> {
+        let w = self.layout.window_len();
+        let mut out = Vec::with_capacity(rows.len() * w);
+        for &r in rows {
+            let (s, t) = side[r];
+            let win = window(&self.shards[s], self.layout.spec, t);
+            let mut row = self.layout.interleave(&win.states, &win.actions);
+            self.norm.normalise(&mut row, 0, w);
+            out.extend(row);
+        }
+        out
     }
 }
 
@@ -259,23 +274,19 @@ impl Trainer {
         }
     }
 
-    pub fn data(&self) -> &WindowSet {
-        &self.data
-    }
-
     /// Learning rate at the current step (linear warm-up, then constant).
     pub fn lr(&self) -> f32 {
         self.config.lr * ((self.step + 1) as f32 / self.config.warmup.max(1) as f32).min(1.0)
     }
 
-    /// Conditioning and clean futures of the given rows of `set`.
-    fn split(&self, set: &[f32], rows: &[usize]) -> (Vec<f32>, Vec<f32>) {
+    /// Conditioning and clean futures of consecutive windows.
+    fn split(&self, windows: &[f32]) -> (Vec<f32>, Vec<f32>) {
         let layout = self.model.layout();
         let (w, c) = (layout.window_len(), layout.cond_len());
         let (mut cond, mut future) = (Vec::new(), Vec::new());
-        for &r in rows {
-            cond.extend_from_slice(&set[r * w..r * w + c]);
-            future.extend_from_slice(&set[r * w + c..(r + 1) * w]);
+        for row in windows.chunks_exact(w) {
+            cond.extend_from_slice(&row[..c]);
+            future.extend_from_slice(&row[c..]);
         }
         (cond, future)
     }
@@ -290,11 +301,11 @@ impl Trainer {
         }
     }
 
-    /// Mean squared error of the prediction on `rows` of `set`, and the parameter gradient
+    /// Mean squared error of the prediction on `rows` of a side, and the parameter gradient
     /// when asked.
-    fn loss(&self, set: &[f32], rows: &[usize], rng: &mut StdRng, grads: bool) -> (f32, Option<Vec<f32>>) {
+    fn loss(&self, side: &[(usize, usize)], rows: &[usize], rng: &mut StdRng, grads: bool) -> (f32, Option<Vec<f32>>) {
         let net = &self.model.net;
-        let (cond, clean) = self.split(set, rows);
+        let (cond, clean) = self.split(&self.data.windows(side, rows));
         let batch = self.training_batch(&clean, rng);
         let n = rows.len();
         let tape = net.net.forward(&net.tokens(&batch.x, &cond, n), &batch.t, n);

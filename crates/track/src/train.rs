@@ -663,17 +663,33 @@ impl Checkpoint {
         policy.actor.set_params(&self.f32s("actor", policy.actor.num_params())?);
         policy.critic.set_params(&self.f32s("critic", policy.critic.num_params())?);
         policy.log_std = self.f32s("log_std", NUM_DOFS)?;
-        policy.normalizer = Normalizer {
+        let normalizer = Normalizer {
             mean: self.f64s("obs_mean", OBS_DIM)?,
             var: self.f64s("obs_var", OBS_DIM)?,
             count: self.number("obs_count")?,
         };
+        let valid = normalizer.mean.iter().all(|m| m.is_finite())
+            && normalizer.var.iter().all(|v| v.is_finite() && *v >= 0.0)
+            && normalizer.count.is_finite()
+            && normalizer.count > 0.0;
+        if !valid {
+            return Err(
+                self.bad("observation statistics are not finite, or a variance or the count is negative".into())
+            );
+        }
+        policy.normalizer = normalizer;
         Ok(())
     }
 
     /// A policy with the stored weights.
     pub fn policy(&self) -> Result<Policy, TrackError> {
         let cfg = self.config()?;
+        // The stored tensors must have the configured shape before a network of it is allocated.
+        for (name, out) in [("actor", NUM_DOFS), ("critic", 1)] {
+            let sizes = [&[OBS_DIM][..], &cfg.hidden, &[out]].concat();
+            let params: usize = sizes.windows(2).map(|w| w[0] * w[1] + w[1]).sum();
+            self.raw(name, Dtype::F32, params)?;
+        }
         let mut policy = Policy::new(OBS_DIM, NUM_DOFS, &cfg, &mut StdRng::seed_from_u64(0));
         self.load_policy(&mut policy)?;
         Ok(policy)
