@@ -1,5 +1,5 @@
 #!/bin/sh
-# Makes the fuzz seeds and fixtures in fuzz/corpus/<target>/ and fuzz/fixtures/ with flowmimic's
+# Makes the fuzz seeds in fuzz/corpus/<target>/ with flowmimic's
 # own commands on the smallest settings (fuzz/seeds.toml over the tiny preset). The BVH and
 # DeepMimic seeds are hand-written and committed as they are.
 set -eu
@@ -18,16 +18,12 @@ step $fm run --model "$work/model" --task walk --seconds 0.2 --clip "$work/clips
     -o "$work/walk.rollout.safetensors"
 shard=$(ls "$work/data"/*.rollouts.safetensors)
 for t in clip policy model stats rollout shard manifest config; do rm -rf "fuzz/corpus/$t"; mkdir -p "fuzz/corpus/$t"; done
-mkdir -p fuzz/fixtures
 cp "$work/clips/walk.clip.safetensors" fuzz/corpus/clip/
 cp "$work/expert/policy.safetensors" fuzz/corpus/policy/
 cp "$work/model/model.safetensors" fuzz/corpus/model/
 cp "$work/model/stats.safetensors" fuzz/corpus/stats/
-cp "$work/model/stats.safetensors" fuzz/fixtures/
 cp "$work/walk.rollout.safetensors" fuzz/corpus/rollout/
 cp "$shard" fuzz/corpus/shard/
-cp "$shard" fuzz/fixtures/shard.safetensors
 cp "$work/data/manifest.json" fuzz/corpus/manifest/
-cp "$work/data/manifest.json" fuzz/fixtures/
 cp configs/*.toml fuzz/corpus/config/
-du -sh fuzz/corpus/* fuzz/fixtures
+du -sh fuzz/corpus/*

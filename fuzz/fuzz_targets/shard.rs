@@ -8,7 +8,7 @@ fuzz_target!(|data: &[u8]| {
     let dir = flowmimic_fuzz::scratch().join("shard");
     std::fs::create_dir_all(&dir).expect("dataset directory");
     let mut manifest: serde_json::Value =
-        serde_json::from_slice(&flowmimic_fuzz::fixture("manifest.json")).expect("fixture manifest");
+        serde_json::from_slice(flowmimic_fuzz::seed("manifest/manifest.json")).expect("seed manifest");
     let shard = &mut manifest["shards"][0];
     let file = shard["file"].as_str().expect("shard file").to_string();
     shard["sha256"] = Sha256::digest(data).iter().map(|b| format!("{b:02x}")).collect::<String>().into();

@@ -3,7 +3,8 @@
 
 use flowmimic_sim::{Humanoid, SimConfig};
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, OnceLock};
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex, OnceLock};
 
 /// A directory of this process's own under the system's temporary directory.
 pub fn scratch() -> &'static Path {
@@ -22,11 +23,16 @@ pub fn write(name: &str, bytes: &[u8]) -> PathBuf {
     path
 }
 
-/// A valid file made by `scripts/fuzz-seeds.sh` (from `fuzz/fixtures/`), for the parts of a
-/// directory that a target holds fixed while it fuzzes another.
-pub fn fixture(name: &str) -> Vec<u8> {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures").join(name);
-    std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}; run scripts/fuzz-seeds.sh", path.display()))
+/// A committed seed (`fuzz/corpus/TARGET/FILE`, made by `scripts/fuzz-seeds.sh`), for the
+/// files of a directory that a target holds fixed while it fuzzes another; read once.
+pub fn seed(name: &'static str) -> &'static [u8] {
+    static SEEDS: Mutex<BTreeMap<&str, &[u8]>> = Mutex::new(BTreeMap::new());
+    let mut seeds = SEEDS.lock().expect("seed cache");
+    seeds.entry(name).or_insert_with(|| {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("corpus").join(name);
+        let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}; run scripts/fuzz-seeds.sh", path.display()));
+        Vec::leak(bytes)
+    })
 }
 
 /// The simulated humanoid of the default settings, built once.

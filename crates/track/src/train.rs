@@ -58,6 +58,10 @@ pub struct TrackConfig {
     pub bin_seconds: f64,
     pub bin_smoothing: f64,
     pub uniform_share: f64,
+    /// With several clips: the share of resets that pick a clip in proportion to its length;
+    /// the rest pick one evenly. Long clips get practice in proportion to their motion, short
+    /// ones keep a floor.
+    pub clip_length_share: f64,
     pub seed: u64,
     /// Iterations between checkpoints.
     pub checkpoint_every: usize,
@@ -92,6 +96,7 @@ impl Default for TrackConfig {
             bin_seconds: 1.0,
             bin_smoothing: 0.1,
             uniform_share: 0.3,
+            clip_length_share: 0.5,
             seed: 0,
             checkpoint_every: 25,
         }
@@ -118,9 +123,9 @@ impl TrackConfig {
         if positive.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
             return bad("learning_rate, kl_target, clip, max_grad_norm, action_scale and bin_seconds must be positive");
         }
-        let unit = [self.gamma, self.lambda, self.bin_smoothing, self.uniform_share];
+        let unit = [self.gamma, self.lambda, self.bin_smoothing, self.uniform_share, self.clip_length_share];
         if unit.iter().any(|v| !(0.0..=1.0).contains(v)) {
-            return bad("gamma, lambda, bin_smoothing and uniform_share must be in [0, 1]");
+            return bad("gamma, lambda, bin_smoothing, uniform_share and clip_length_share must be in [0, 1]");
         }
         let rest =
             [self.entropy, self.value_coef, self.init_noise, self.push_max, self.max_height_error, self.max_tilt_error];
@@ -273,7 +278,7 @@ impl IterationLog {
 }
 
 /// A PPO run: one reference-conditioned policy tracking one clip (the paper's per-clip experts)
-/// or several (environment `i` tracks clip `i mod k`).
+/// or several (each episode draws its clip: see [`TrackConfig::clip_length_share`]).
 pub struct Trainer {
     pub cfg: TrackConfig,
     pub references: Vec<Arc<Reference>>,
@@ -287,6 +292,8 @@ pub struct Trainer {
     pub iteration: usize,
     pub env_steps: u64,
     episode_steps: Vec<usize>,
+    /// The clip each environment's episode tracks.
+    env_clips: Vec<usize>,
 }
 
 impl Trainer {
@@ -317,6 +324,7 @@ impl Trainer {
         let trackers = (0..cfg.envs).map(|_| Tracker::new(humanoid)).collect();
         let mut trainer = Self {
             episode_steps: vec![0; cfg.envs],
+            env_clips: vec![0; cfg.envs],
             cfg,
             references,
             policy,
@@ -334,11 +342,13 @@ impl Trainer {
 
     /// The clip environment `i` tracks.
     fn clip_of(&self, i: usize) -> usize {
-        i % self.references.len()
+        self.env_clips[i]
     }
 
     fn reset_env(&mut self, i: usize) -> Result<(), TrackError> {
-        let c = self.clip_of(i);
+        let lengths: Vec<usize> = self.references.iter().map(|r| r.len()).collect();
+        let c = draw_clip(&lengths, self.cfg.clip_length_share, &mut self.rng);
+        self.env_clips[i] = c;
         let start = self.samplers[c].sample(&self.cfg, &mut self.rng);
         self.trackers[i].reset(&self.references[c], start, &self.cfg, &mut self.rngs[i])?;
         Ok(())
@@ -353,12 +363,12 @@ impl Trainer {
     }
 
     fn observe_all(&self, out: &mut [f32]) {
-        let (refs, k) = (&self.references, self.references.len());
+        let (refs, clips) = (&self.references, &self.env_clips);
         self.trackers
             .par_iter()
             .zip(out.par_chunks_mut(OBS_DIM))
-            .enumerate()
-            .for_each(|(i, (t, o))| t.observe(&refs[i % k], o));
+            .zip(clips)
+            .for_each(|((t, o), &c)| t.observe(&refs[c], o));
     }
 
     /// One iteration: collect `envs x horizon` steps, then update.
@@ -394,14 +404,14 @@ impl Trainer {
             let ppo::Sampled { actions, means, log_probs, values } = ppo::sample(&self.policy, &obs, e, &mut self.rng);
             network += t0.elapsed().as_secs_f64();
             let t1 = Instant::now();
-            let (refs, k, cfg) = (&self.references, self.references.len(), &self.cfg);
+            let (refs, clips, cfg) = (&self.references, &self.env_clips, &self.cfg);
             let results: Vec<(RewardTerms, Ending)> = self
                 .trackers
                 .par_iter_mut()
                 .zip(self.rngs.par_iter_mut())
                 .zip(actions.par_chunks(NUM_DOFS))
                 .enumerate()
-                .map(|(i, ((tracker, rng), u))| tracker.step(&refs[i % k], u, cfg, rng))
+                .map(|(i, ((tracker, rng), u))| tracker.step(&refs[clips[i]], u, cfg, rng))
                 .collect();
             for (i, (terms, ending)) in results.iter().enumerate() {
                 let total = terms.total();
@@ -581,6 +591,26 @@ impl Trainer {
         trainer.reset_all()?;
         Ok(trainer)
     }
+}
+
+/// A clip for a new episode, given the clips' lengths: in proportion to length with
+/// probability `length_share`, else evenly.
+fn draw_clip(lengths: &[usize], length_share: f64, rng: &mut impl Rng) -> usize {
+    let k = lengths.len();
+    if k == 1 {
+        return 0;
+    }
+    if rng.random::<f64>() >= length_share {
+        return rng.random_range(0..k);
+    }
+    let mut at = rng.random_range(0..lengths.iter().sum::<usize>());
+    for (c, &len) in lengths.iter().enumerate() {
+        if at < len {
+            return c;
+        }
+        at -= len;
+    }
+    k - 1
 }
 
 pub const POLICY_FORMAT: &str = "flowmimic-policy/1";
@@ -805,4 +835,24 @@ pub fn bench(
             ..logs[0].clone()
         })
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn clips_are_drawn_by_length_and_evenly_in_the_configured_shares() {
+        let mut rng = StdRng::seed_from_u64(3);
+        let share_of_long = |length_share: f64, rng: &mut StdRng| {
+            let n = 20_000;
+            (0..n).filter(|_| draw_clip(&[900, 100], length_share, rng) == 0).count() as f64 / n as f64
+        };
+        // By length only: 0.9; evenly only: 0.5; half and half: 0.7.
+        for (share, expected) in [(1.0, 0.9), (0.0, 0.5), (0.5, 0.7)] {
+            let got = share_of_long(share, &mut rng);
+            assert!((got - expected).abs() < 0.015, "share {share}: {got} of episodes on the long clip");
+        }
+        assert_eq!(draw_clip(&[5], 1.0, &mut rng), 0);
+    }
 }
