@@ -2,6 +2,8 @@
 # Both fetch MuJoCo 3.17's shared library from PyPI into third_party/ first, if it is missing.
 
 MUJOCO := third_party/mujoco/libmujoco.so
+# numpy and onnxruntime for the ONNX export check (optional: skipped when they cannot be installed).
+PYDEPS := third_party/python
 
 .PHONY: run demo test lint bench mujoco
 
@@ -15,7 +17,7 @@ demo: $(MUJOCO)
 	cargo run --release -- render runs/demo/joystick.rollout.safetensors
 	cargo run --release -- render runs/demo/reach.rollout.safetensors
 
-test: $(MUJOCO)
+test: $(MUJOCO) $(PYDEPS)
 	cargo test --workspace
 
 lint: $(MUJOCO)
@@ -30,3 +32,6 @@ mujoco: $(MUJOCO)
 
 $(MUJOCO):
 	./scripts/fetch-mujoco.sh
+
+$(PYDEPS):
+	./scripts/fetch-pydeps.sh

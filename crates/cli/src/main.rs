@@ -6,6 +6,7 @@ mod config;
 mod data;
 mod demo;
 mod eval;
+mod export;
 mod model;
 mod motion;
 mod pipeline;
@@ -149,6 +150,19 @@ enum Command {
     /// Measure throughput and print a table of medians.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Export a trajectory model (a `train` directory) or an expert (a `track train` run) as an
+    /// ONNX graph (opset 17) for ONNX Runtime, TensorRT and the like.
+    Export {
+        /// The model directory or expert run.
+        path: PathBuf,
+        /// The .onnx file to write.
+        #[arg(short, long)]
+        out: PathBuf,
+        /// Also write inputs and flowmimic's own outputs to this safetensors file, to check another
+        /// runtime against (`python3 examples/onnx_check.py OUT CHECK`).
+        #[arg(long)]
+        check: Option<PathBuf>,
+    },
     /// Print the settings in force (preset plus --config) as TOML.
     Config,
 }
@@ -231,6 +245,7 @@ fn run(cli: Cli) -> Result<()> {
             let paper = Config::load("paper", None)?.model;
             model::bench(&[(cli.settings.preset.as_str(), config.model), ("paper", paper)], repeats)?
         }
+        Command::Export { path, out, check } => export::run(&path, &out, check.as_deref())?,
         Command::Config => print!("{}", toml::to_string(&config)?),
         Command::Sim(cmd) => sim(cmd, &config)?,
         Command::Motion(cmd) => motion::run(cmd, &Humanoid::new(config.sim)?)?,

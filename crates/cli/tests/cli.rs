@@ -64,6 +64,7 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     std::fs::write(dir.join("longer.toml"), "[model]\nhorizon = 3\n").unwrap();
     let (refused, text) = flowmimic(dir, &["--config", "longer.toml", "train", "data", "-o", "fm", "--resume"]);
     assert!(!refused && text.contains("checkpoint.safetensors") && text.contains("horizon: 3"), "{text}");
+    exports_match_flowmimic_in_onnx_runtime(dir);
     // Both objectives drive the humanoid; the rollout holds every step's record.
     for model in ["fm", "ddpm"] {
         let out = format!("{model}.rollout.safetensors");
@@ -116,6 +117,38 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     assert!(!refused && text.contains("duration") && !dir.join("empty.rollout.safetensors").exists(), "{text}");
     // A clip is told from a rollout by its format, whatever its file name.
     viewer_serves_and_draws(dir, "clips/w.clip.safetensors");
+}
+
+/// `flowmimic export` of the tiny model and expert; where Python has numpy and onnxruntime
+/// (`make test` installs them into third_party/python), ONNX Runtime reproduces flowmimic's
+/// outputs (`examples/onnx_check.py`). Bad input is refused without writing anything.
+fn exports_match_flowmimic_in_onnx_runtime(dir: &Path) {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let pythonpath = root.join("third_party/python");
+    let python = |args: &[&std::ffi::OsStr]| {
+        Command::new("python3").args(args).current_dir(dir).env("PYTHONPATH", &pythonpath).output()
+    };
+    let has_runtime = python(&["-c".as_ref(), "import numpy, onnxruntime".as_ref()]).is_ok_and(|o| o.status.success());
+    for (what, source) in [("model", "fm"), ("expert", "run")] {
+        let (graph, check) = (format!("{what}.onnx"), format!("{what}.check.safetensors"));
+        let text = ok(dir, &["export", source, "-o", &graph, "--check", &check]);
+        assert!(text.contains("opset 17") || text.contains("actor"), "{text}");
+        if has_runtime {
+            let out =
+                python(&[root.join("examples/onnx_check.py").as_os_str(), graph.as_ref(), check.as_ref()]).unwrap();
+            let report = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+            assert!(out.status.success() && report.contains("relative error"), "{report}");
+        }
+    }
+    if !has_runtime {
+        eprintln!("ONNX Runtime check skipped: python3 cannot import numpy and onnxruntime (scripts/fetch-pydeps.sh)");
+    }
+    std::fs::create_dir_all(dir.join("broken")).unwrap();
+    std::fs::write(dir.join("broken/model.safetensors"), b"damaged").unwrap();
+    for (source, says) in [("broken", "model.safetensors"), ("data", "neither a model directory")] {
+        let (refused, text) = flowmimic(dir, &["export", source, "-o", "refused.onnx"]);
+        assert!(!refused && text.contains(says) && !dir.join("refused.onnx").exists(), "{text}");
+    }
 }
 
 #[test]
