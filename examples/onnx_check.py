@@ -1,12 +1,16 @@
 """Run a `flowmimic export` graph in ONNX Runtime and check it against flowmimic's own outputs.
 
-    flowmimic export pretrained/models/fm -o fm.onnx --check fm.check.safetensors
-    python3 examples/onnx_check.py fm.onnx fm.check.safetensors
+    flowmimic export pretrained/models/fm -o fm.onnx --check fm.check.safetensors \
+        --rollout runs/demo/joystick.rollout.safetensors
+    python3 examples/onnx_check.py fm.onnx fm.check.safetensors runs/demo/joystick.rollout.safetensors
 
 Needs numpy and onnxruntime (`pip install numpy onnxruntime`), nothing else. For a trajectory
 model it compares the network's output and, for Flow Matching, an Euler sampler at NFE 5 written
-here against flowmimic's samples from the same noise; for an expert, the actions. It then times
-ONNX Runtime's forward pass at batch 1 and 64. Exits non-zero when a comparison fails.
+here against flowmimic's samples from the same noise; given the rollout, it also builds the
+conditioning from the rollout's states and actions as flowmimic's controller does (states
+re-expressed in the current character frame, normalised with the statistics in the graph's
+metadata) and samples from it. For an expert it compares the actions. It then times ONNX
+Runtime's forward pass at batch 1 and 64. Exits non-zero when a comparison fails.
 """
 
 import json
@@ -22,7 +26,8 @@ TOLERANCE = 1e-4  # largest error relative to the largest magnitude of flowmimic
 
 
 def read_safetensors(path):
-    """A safetensors file's F32 tensors as numpy arrays (the format is a JSON header + bytes)."""
+    """A safetensors file's F32 tensors as numpy arrays, and its metadata (a JSON header, then
+    the bytes)."""
     with open(path, "rb") as f:
         data = f.read()
     (size,) = struct.unpack("<Q", data[:8])
@@ -33,9 +38,79 @@ def read_safetensors(path):
         if name == "__metadata__":
             continue
         start, end = info["data_offsets"]
-        assert info["dtype"] == "F32", f"{name}: {info['dtype']}"
-        out[name] = np.frombuffer(body[start:end], dtype="<f4").reshape(info["shape"])
-    return out
+        if info["dtype"] == "F32":
+            out[name] = np.frombuffer(body[start:end], dtype="<f4").reshape(info["shape"])
+    return out, header.get("__metadata__", {})
+
+
+def quat_mul(a, b):
+    """Hamilton product of (w, x, y, z) quaternions."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return np.array([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw])
+
+
+def yaw_quat(yaw):
+    return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+
+
+def rotate(q, v):
+    return quat_mul(quat_mul(q, np.concatenate([[0.0], v])), q * np.array([1, -1, -1, -1]))[1:]
+
+
+def from_rotvec(v):
+    angle = np.linalg.norm(v)
+    if angle < 1e-12:
+        q = np.concatenate([[1.0], 0.5 * v])
+        return q / np.linalg.norm(q)
+    return np.concatenate([[np.cos(angle / 2)], np.sin(angle / 2) * v / angle])
+
+
+def rotvec(q):
+    q = -q if q[0] < 0 else q
+    s = np.linalg.norm(q[1:])
+    return 2.0 * q[1:] if s < 1e-12 else q[1:] * (2.0 * np.arctan2(s, q[0]) / s)
+
+
+def reexpress(state, pose_k, pose_t):
+    """A state (in its own character frame) in the frame of step t: root position, velocity and
+    rotation vector are the only entries that depend on the frame (state offsets 0, 3 and 6)."""
+    out = state.astype(np.float64).copy()
+    turn, back = yaw_quat(float(np.float32(pose_k[2] - pose_t[2]))), yaw_quat(-float(pose_t[2]))
+    d = rotate(back, np.array([float(np.float32(pose_k[0] - pose_t[0])), float(np.float32(pose_k[1] - pose_t[1])), 0.0]))
+    out[0:2] = d[:2]
+    out[3:6] = rotate(turn, out[3:6])
+    out[6:9] = rotvec(quat_mul(turn, from_rotvec(out[6:9])))
+    return out.astype(np.float32)
+
+
+def rollout_conditioning(rollout, layout, t):
+    """The controller's conditioning at step t of the rollout's first environment: the last
+    N + 1 states (the oldest repeated before there are N + 1) and the N actions between them."""
+    n, sd = layout["spec"]["history"], layout["state_dim"]
+    qpos, states, actions = rollout["qpos"][0], rollout["state"][0], rollout["action"][0]
+    w, x, y, z = (qpos[:, i].astype(np.float64) for i in range(3, 7))
+    heading = np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z)).astype(np.float32)
+    pose = lambda k: (qpos[k, 0], qpos[k, 1], heading[k])
+    ks = [max(t - n + j, 0) for j in range(n + 1)]
+    parts = []
+    for j, k in enumerate(ks):
+        parts.append(reexpress(states[k, :sd], pose(k), pose(t)))
+        if j < n:
+            parts.append(actions[k] if k < t else np.zeros(layout["action_dim"], dtype=np.float32))
+    return np.concatenate(parts)[None, :]
+
+
+def normaliser(meta):
+    """Per-entry mean and std of an interleaved window, from the graph's metadata."""
+    stats, layout = json.loads(meta["stats"]), json.loads(meta["layout"])
+    sd, ad = layout["state_dim"], layout["action_dim"]
+    slots = len(stats["state_mean"]) // sd
+    interleave = lambda s, a: np.concatenate(
+        [np.concatenate([s[k * sd:(k + 1) * sd], a[k * ad:(k + 1) * ad]]) for k in range(slots)]
+    ).astype(np.float32)
+    return (interleave(stats["state_mean"], stats["action_mean"]), interleave(stats["state_std"], stats["action_std"]))
 
 
 def relative_error(got, expected):
@@ -53,7 +128,7 @@ def median_ms(run, repeats=50):
 
 
 def main():
-    if len(sys.argv) != 3:
+    if len(sys.argv) not in (3, 4):
         sys.exit(__doc__)
     graph, check = sys.argv[1], sys.argv[2]
     options = ort.SessionOptions()
@@ -62,7 +137,7 @@ def main():
     session = ort.InferenceSession(graph, options, providers=["CPUExecutionProvider"])
     meta = session.get_modelmeta().custom_metadata_map
     assert meta.get("format") == "flowmimic-onnx/1", f"{graph} is not a flowmimic export: {meta.get('format')}"
-    data = read_safetensors(check)
+    data, check_meta = read_safetensors(check)
     errors = {}
     if meta["kind"] == "trajectory-model":
         run = lambda x, t, cond: session.run(["y"], {"x": x, "t": t, "cond": cond})[0]
@@ -73,6 +148,18 @@ def main():
                 t = np.full(len(x), step / nfe, dtype=np.float32)
                 x = x + (1.0 / nfe) * run(x, t, data["cond"])
             errors["Euler samples, NFE 5"] = relative_error(x, data["euler_nfe5"])
+        if len(sys.argv) == 4:
+            rollout, _ = read_safetensors(sys.argv[3])
+            layout = json.loads(meta["layout"])
+            cond = rollout_conditioning(rollout, layout, int(check_meta["rollout_step"]))
+            errors["conditioning from the rollout"] = relative_error(cond, data["rollout_cond"])
+            mean, std = normaliser(meta)
+            c = cond.shape[1]
+            cond = (cond - mean[:c]) / std[:c]
+            x = data["rollout_noise"].copy()
+            for step in range(5):
+                x = x + 0.2 * run(x, np.full(1, step / 5, dtype=np.float32), cond.astype(np.float32))
+            errors["Euler samples from the rollout's conditioning"] = relative_error(x, data["rollout_euler_nfe5"])
         for batch in (1, 64):
             rows = np.arange(batch) % len(data["x"])
             x, t, cond = data["x"][rows], data["t"][rows], data["cond"][rows]

@@ -3,7 +3,11 @@
 
 use crate::track::RUN_POLICY;
 use anyhow::{Context, Result, bail};
+use flowmimic_control::{History, Rollout};
+use flowmimic_geom::{heading, quat_from_wxyz};
+use flowmimic_model::TrajectoryModel;
 use flowmimic_model::fm::{self, Solver};
+use flowmimic_sim::{NUM_DOFS, STATE_DIM};
 use flowmimic_track::train::Checkpoint;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -16,7 +20,9 @@ const CHECK_SAMPLES: usize = 16;
 /// Network evaluations of the sampler in a check file.
 const CHECK_NFE: usize = 5;
 
-pub fn run(path: &Path, out: &Path, check: Option<&Path>) -> Result<()> {
+/// Exports `path` to `out`; with `check`, writes check data there (for a trajectory model with
+/// `rollout`, also the conditioning the controller builds from that rollout's step `step`).
+pub fn run(path: &Path, out: &Path, check: Option<&Path>, rollout: Option<&Path>, step: usize) -> Result<()> {
     let mut rng = StdRng::seed_from_u64(7);
     let mut normal = |n: usize| -> Vec<f32> { (0..n).map(|_| StandardNormal.sample(&mut rng)).collect() };
     let n = CHECK_SAMPLES;
@@ -46,7 +52,31 @@ pub fn run(path: &Path, out: &Path, check: Option<&Path>) -> Result<()> {
                 samples = fm::sample(&model.net, &cond, noise.clone(), n, CHECK_NFE, Solver::Euler, None);
                 tensors.extend([("noise", vec![n, f], &noise[..]), ("euler_nfe5", vec![n, f], &samples[..])]);
             }
-            flowmimic_io::tensors::save(check, &tensors, HashMap::new())?;
+            let (physical, rollout_samples);
+            if let Some(file) = rollout {
+                // The controller's conditioning at a rollout's step, and samples from it.
+                if model.objective.name() != "fm" {
+                    bail!(
+                        "--rollout checks Flow Matching's Euler sampler; {} is {}",
+                        path.display(),
+                        model.objective.name()
+                    );
+                }
+                let r = Rollout::load(file)?;
+                physical = rollout_conditioning(&model, &r, step).with_context(|| format!("{}", file.display()))?;
+                let mut normalised = physical.clone();
+                model.norm.normalise(&mut normalised, 0, c);
+                let noise = &x[..f];
+                rollout_samples =
+                    fm::sample(&model.net, &normalised, noise.to_vec(), 1, CHECK_NFE, Solver::Euler, None);
+                tensors.extend([
+                    ("rollout_cond", vec![1, c], &physical[..]),
+                    ("rollout_noise", vec![1, f], noise),
+                    ("rollout_euler_nfe5", vec![1, f], &rollout_samples[..]),
+                ]);
+            }
+            let meta = HashMap::from([("rollout_step".to_string(), step.to_string())]);
+            flowmimic_io::tensors::save(check, &tensors, meta)?;
             eprintln!("wrote {}: {n} inputs and flowmimic's outputs", check.display());
         }
     } else if path.join(RUN_POLICY).exists() {
@@ -78,4 +108,27 @@ pub fn run(path: &Path, out: &Path, check: Option<&Path>) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// The conditioning (physical units) that the controller builds at `step` of environment 0 of
+/// `rollout`: the states before it re-expressed in that step's character frame, and the actions
+/// executed between them.
+fn rollout_conditioning(model: &TrajectoryModel, rollout: &Rollout, step: usize) -> Result<Vec<f32>> {
+    let layout = model.layout();
+    if step > rollout.steps {
+        bail!("step {step} is past the rollout's {} steps", rollout.steps);
+    }
+    let (nq, steps) = (rollout.nq, rollout.steps);
+    let mut history = History::new(layout.spec);
+    for k in 0..=step {
+        let state: [f32; STATE_DIM] = rollout.state[k * STATE_DIM..(k + 1) * STATE_DIM].try_into()?;
+        let q = &rollout.qpos[k * nq..(k + 1) * nq];
+        let rot = quat_from_wxyz([q[3], q[4], q[5], q[6]].map(f64::from));
+        history.push(state, [q[0], q[1], heading(rot) as f32]);
+        if k < step.min(steps) {
+            history.act(&rollout.action[k * NUM_DOFS..(k + 1) * NUM_DOFS]);
+        }
+    }
+    let (states, actions) = history.conditioning();
+    Ok(layout.interleave(&states, &actions))
 }

@@ -162,6 +162,12 @@ enum Command {
         /// runtime against (`python3 examples/onnx_check.py OUT CHECK`).
         #[arg(long)]
         check: Option<PathBuf>,
+        /// With --check, for a trajectory model: also the conditioning the controller builds at
+        /// step --step of this rollout's first environment, and samples from it.
+        #[arg(long, requires = "check")]
+        rollout: Option<PathBuf>,
+        #[arg(long, default_value_t = 10)]
+        step: usize,
     },
     /// Print the settings in force (preset plus --config) as TOML.
     Config,
@@ -245,7 +251,9 @@ fn run(cli: Cli) -> Result<()> {
             let paper = Config::load("paper", None)?.model;
             model::bench(&[(cli.settings.preset.as_str(), config.model), ("paper", paper)], repeats)?
         }
-        Command::Export { path, out, check } => export::run(&path, &out, check.as_deref())?,
+        Command::Export { path, out, check, rollout, step } => {
+            export::run(&path, &out, check.as_deref(), rollout.as_deref(), step)?
+        }
         Command::Config => print!("{}", toml::to_string(&config)?),
         Command::Sim(cmd) => sim(cmd, &config)?,
         Command::Motion(cmd) => motion::run(cmd, &Humanoid::new(config.sim)?)?,

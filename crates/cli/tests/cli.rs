@@ -64,7 +64,6 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     std::fs::write(dir.join("longer.toml"), "[model]\nhorizon = 3\n").unwrap();
     let (refused, text) = flowmimic(dir, &["--config", "longer.toml", "train", "data", "-o", "fm", "--resume"]);
     assert!(!refused && text.contains("checkpoint.safetensors") && text.contains("horizon: 3"), "{text}");
-    exports_match_flowmimic_in_onnx_runtime(dir);
     // Both objectives drive the humanoid; the rollout holds every step's record.
     for model in ["fm", "ddpm"] {
         let out = format!("{model}.rollout.safetensors");
@@ -72,6 +71,7 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
         let run = ok(dir, &args);
         assert!(run.contains("environments fell") && dir.join(&out).exists(), "{run}");
     }
+    exports_match_flowmimic_in_onnx_runtime(dir);
     // Rendering needs EGL (Mesa's software OpenGL); where the machine has none, the error
     // says what to install.
     let (rendered, text) = flowmimic(dir, &["render", "fm.rollout.safetensors", "--width", "64", "--height", "48"]);
@@ -129,15 +129,20 @@ fn exports_match_flowmimic_in_onnx_runtime(dir: &Path) {
         Command::new("python3").args(args).current_dir(dir).env("PYTHONPATH", &pythonpath).output()
     };
     let has_runtime = python(&["-c".as_ref(), "import numpy, onnxruntime".as_ref()]).is_ok_and(|o| o.status.success());
-    for (what, source) in [("model", "fm"), ("expert", "run")] {
+    // The model's check includes the conditioning built from a rollout, as the controller does.
+    let rollout = ["--rollout", "fm.rollout.safetensors", "--step", "5"];
+    for (what, source, extra) in [("model", "fm", &rollout[..]), ("expert", "run", &[])] {
         let (graph, check) = (format!("{what}.onnx"), format!("{what}.check.safetensors"));
-        let text = ok(dir, &["export", source, "-o", &graph, "--check", &check]);
+        let text = ok(dir, &[&["export", source, "-o", &graph, "--check", &check][..], extra].concat());
         assert!(text.contains("opset 17") || text.contains("actor"), "{text}");
         if has_runtime {
-            let out =
-                python(&[root.join("examples/onnx_check.py").as_os_str(), graph.as_ref(), check.as_ref()]).unwrap();
+            let script = root.join("examples/onnx_check.py");
+            let mut args = vec![script.as_os_str(), graph.as_ref(), check.as_ref()];
+            args.extend(extra.get(1).map(std::ffi::OsStr::new));
+            let out = python(&args).unwrap();
             let report = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
             assert!(out.status.success() && report.contains("relative error"), "{report}");
+            assert!(extra.is_empty() || report.contains("conditioning from the rollout"), "{report}");
         }
     }
     if !has_runtime {
