@@ -7,13 +7,16 @@ use flowmimic_control::{History, Rollout};
 use flowmimic_geom::{heading, quat_from_wxyz};
 use flowmimic_model::TrajectoryModel;
 use flowmimic_model::fm::{self, Solver};
+use flowmimic_sim::Humanoid;
 use flowmimic_sim::{NUM_DOFS, STATE_DIM};
+use flowmimic_track::task::{OBS_DIM, Reference, Tracker};
 use flowmimic_track::train::Checkpoint;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, StandardNormal};
 use std::collections::HashMap;
 use std::path::Path;
+use std::sync::Arc;
 
 /// Samples in a check file.
 const CHECK_SAMPLES: usize = 16;
@@ -22,9 +25,16 @@ const CHECK_NFE: usize = 5;
 
 /// Exports `path` to `out`; with `check`, writes check data there (for a trajectory model with
 /// `rollout`, also the conditioning the controller builds from that rollout's step `step`).
-pub fn run(path: &Path, out: &Path, check: Option<&Path>, rollout: Option<&Path>, step: usize) -> Result<()> {
+pub fn run(
+    humanoid: &Arc<Humanoid>,
+    path: &Path,
+    out: &Path,
+    check: Option<&Path>,
+    rollout: Option<&Path>,
+    step: usize,
+) -> Result<()> {
     let mut rng = StdRng::seed_from_u64(7);
-    let mut normal = |n: usize| -> Vec<f32> { (0..n).map(|_| StandardNormal.sample(&mut rng)).collect() };
+    let normal = |n: usize, rng: &mut StdRng| -> Vec<f32> { (0..n).map(|_| StandardNormal.sample(rng)).collect() };
     let n = CHECK_SAMPLES;
     if path.join(flowmimic_model::train::MODEL_FILE).exists() {
         let model = crate::run::load_model(path)?;
@@ -42,7 +52,7 @@ pub fn run(path: &Path, out: &Path, check: Option<&Path>, rollout: Option<&Path>
             // Normalised inputs, the network's outputs and, for Flow Matching, Euler samples.
             let layout = model.layout();
             let (c, f) = (layout.cond_len(), layout.future_len());
-            let (x, cond, noise) = (normal(n * f), normal(n * c), normal(n * f));
+            let (x, cond, noise) = (normal(n * f, &mut rng), normal(n * c, &mut rng), normal(n * f, &mut rng));
             let t: Vec<f32> = (0..n).map(|i| (i as f32 + 0.5) / n as f32).collect();
             let y = flowmimic_model::Network::predict(&model.net, &x, &t, &cond, n);
             let mut tensors = vec![("x", vec![n, f], &x[..]), ("t", vec![n], &t[..]), ("cond", vec![n, c], &cond[..])];
@@ -88,16 +98,18 @@ pub fn run(path: &Path, out: &Path, check: Option<&Path>, rollout: Option<&Path>
         flowmimic_io::write_atomic(out, &bytes)?;
         eprintln!("wrote {} ({} bytes): the actor of the expert for '{clip}'", out.display(), bytes.len());
         if let Some(check) = check {
-            // Raw observations around the running statistics, and the deterministic actions.
-            let norm = &policy.normalizer;
-            let dim = norm.mean.len();
-            let obs: Vec<f32> = normal(n * dim)
-                .iter()
-                .enumerate()
-                .map(|(k, z)| (norm.mean[k % dim] + norm.var[k % dim].sqrt() * 2.0 * f64::from(*z)) as f32)
-                .collect();
+            // Observations along the run's clip (reference-state starts spread over it, with the
+            // reset noise), and the deterministic actions.
+            let reference = Reference::new(crate::track::run_clips(humanoid, path)?.remove(0));
+            let cfg = checkpoint.config()?;
+            let mut tracker = Tracker::new(humanoid);
+            let mut obs = vec![0.0; n * OBS_DIM];
+            for (i, row) in obs.chunks_exact_mut(OBS_DIM).enumerate() {
+                tracker.reset(&reference, i * (reference.len() - 1) / n, &cfg, &mut rng)?;
+                tracker.observe(&reference, row);
+            }
             let actions = policy.act(&obs, n);
-            let tensors = [("obs", vec![n, dim], &obs[..]), ("action", vec![n, actions.len() / n], &actions[..])];
+            let tensors = [("obs", vec![n, OBS_DIM], &obs[..]), ("action", vec![n, actions.len() / n], &actions[..])];
             flowmimic_io::tensors::save(check, &tensors, HashMap::new())?;
             eprintln!("wrote {}: {n} observations and flowmimic's actions", check.display());
         }

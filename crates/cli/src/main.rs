@@ -252,7 +252,7 @@ fn run(cli: Cli) -> Result<()> {
             model::bench(&[(cli.settings.preset.as_str(), config.model), ("paper", paper)], repeats)?
         }
         Command::Export { path, out, check, rollout, step } => {
-            export::run(&path, &out, check.as_deref(), rollout.as_deref(), step)?
+            export::run(&Humanoid::new(config.sim)?, &path, &out, check.as_deref(), rollout.as_deref(), step)?
         }
         Command::Config => print!("{}", toml::to_string(&config)?),
         Command::Sim(cmd) => sim(cmd, &config)?,
