@@ -2,8 +2,8 @@
 //! calls the loader the `flowmimic` command calls on it, so that the code fuzzed is the code run.
 
 use flowmimic_sim::{Humanoid, SimConfig};
-use std::path::{Path, PathBuf};
 use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock};
 
 /// A directory of this process's own under the system's temporary directory.
@@ -30,7 +30,8 @@ pub fn seed(name: &'static str) -> &'static [u8] {
     let mut seeds = SEEDS.lock().expect("seed cache");
     seeds.entry(name).or_insert_with(|| {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("corpus").join(name);
-        let bytes = std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}; run scripts/fuzz-seeds.sh", path.display()));
+        let bytes =
+            std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}; run scripts/fuzz-seeds.sh", path.display()));
         Vec::leak(bytes)
     })
 }
