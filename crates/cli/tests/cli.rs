@@ -27,6 +27,7 @@ fn stages_connect_through_their_files() {
     assert!(resumed.contains("resumed") && resumed.contains("[    3/3]"), "{resumed}");
     let eval = ok(&dir, &["track", "eval", "run", "--episodes", "2"]);
     assert!(eval.contains("\"clip\":\"w\"") && eval.contains("\"clip_steps\":45"), "{eval}");
+    assert!(eval.contains("\"root_path_error\":"), "{eval}");
     let collect = ok(&dir, &["collect", "run", "-o", "data"]);
     assert!(collect.contains("steps/s") && collect.contains("fall rate"), "{collect}");
     let inspect = ok(&dir, &["dataset", "inspect", "data"]);

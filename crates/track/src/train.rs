@@ -734,6 +734,27 @@ pub struct EvalReport {
     /// Mean control steps survived.
     pub mean_steps: f64,
     pub clip_steps: usize,
+    /// How far the root's path strays from the reference's, m/s: over every 1 s window, the
+    /// distance between the humanoid's and the reference's horizontal displacement, each in its
+    /// heading at the window's start. The body error is root-relative, so a humanoid that steps
+    /// in place while the reference walks shows here, not there.
+    pub root_path_error: f64,
+}
+
+/// Control steps in a root-path window (1 s).
+const PATH_WINDOW: usize = CONTROL_HZ as usize;
+
+/// Root x, y and heading of a qpos.
+fn root_pose(qpos: &[f64]) -> [f64; 3] {
+    let rot = flowmimic_geom::quat_from_wxyz([qpos[3], qpos[4], qpos[5], qpos[6]]);
+    [qpos[0], qpos[1], flowmimic_geom::heading(rot)]
+}
+
+/// The horizontal displacement from `a` to `b` in `a`'s heading.
+fn displacement(a: [f64; 3], b: [f64; 3]) -> [f64; 2] {
+    let (s, c) = a[2].sin_cos();
+    let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+    [c * dx + s * dy, -s * dx + c * dy]
 }
 
 /// Runs `episodes` episodes from the clip's first frame (with the reset noise), pushes off,
@@ -759,6 +780,10 @@ pub fn evaluate(
     let mut alive = vec![true; episodes];
     let mut survived = vec![0usize; episodes];
     let (mut error_sum, mut error_n, mut successes) = (0.0, 0usize, 0usize);
+    // Per episode, the root pose and the reference frame of every step so far.
+    let mut paths: Vec<Vec<([f64; 3], usize)>> =
+        trackers.iter().map(|t| vec![(root_pose(t.env().qpos()), t.frame)]).collect();
+    let (mut path_error_sum, mut path_n) = (0.0, 0usize);
     let mut raw = vec![0.0f32; episodes * OBS_DIM];
     for _ in 0..reference.len() - 1 {
         trackers.par_iter().zip(raw.par_chunks_mut(OBS_DIM)).for_each(|(t, o)| t.observe(&reference, o));
@@ -780,6 +805,15 @@ pub fn evaluate(
             survived[i] += 1;
             error_sum += f64::from(terms.body_pos_error);
             error_n += 1;
+            let path = &mut paths[i];
+            path.push((root_pose(trackers[i].env().qpos()), trackers[i].frame.min(reference.len() - 1)));
+            if path.len() > PATH_WINDOW {
+                let ((start, f0), (end, f1)) = (path[path.len() - 1 - PATH_WINDOW], path[path.len() - 1]);
+                let ours = displacement(start, end);
+                let theirs = displacement(root_pose(&clip.qpos[f0]), root_pose(&clip.qpos[f1]));
+                path_error_sum += (ours[0] - theirs[0]).hypot(ours[1] - theirs[1]);
+                path_n += 1;
+            }
             match ending {
                 Ending::None => {}
                 Ending::ClipEnd => {
@@ -797,6 +831,7 @@ pub fn evaluate(
         body_pos_error: error_sum / error_n.max(1) as f64,
         mean_steps: survived.iter().sum::<usize>() as f64 / episodes as f64,
         clip_steps: reference.len() - 1,
+        root_path_error: path_error_sum / path_n.max(1) as f64,
     })
 }
 
@@ -836,6 +871,16 @@ pub fn bench(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn displacements_are_in_the_starting_heading() {
+        // Facing +y and moving 2 m along +y is 2 m forward; along -x is 3 m to the left.
+        let start = [1.0, 1.0, std::f64::consts::FRAC_PI_2];
+        let [f, s] = displacement(start, [1.0, 3.0, 0.0]);
+        assert!((f - 2.0).abs() < 1e-12 && s.abs() < 1e-12, "{f} {s}");
+        let [f, s] = displacement(start, [-2.0, 1.0, 0.0]);
+        assert!(f.abs() < 1e-12 && (s - 3.0).abs() < 1e-12, "{f} {s}");
+    }
 
     #[test]
     fn clips_are_drawn_by_length_and_evenly_in_the_configured_shares() {
