@@ -106,8 +106,9 @@ pub fn train(
             (sum, count, since) = (0.0, 0, Instant::now());
         }
         if step % cfg.checkpoint_every.max(1) == 0 || last {
-            trainer.save(out)?;
+            // Log first: a kill between the writes must not leave a checkpoint past the log.
             log.save()?;
+            trainer.save(out)?;
             plot_loss(out, &log)?;
         }
     }

@@ -185,9 +185,11 @@ pub fn train(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, out: &Path, cfg: &Track
         }
         let last = trainer.iteration == cfg.iterations;
         if trainer.iteration % cfg.checkpoint_every.max(1) == 0 || last {
-            trainer.save(&policy_path)?;
+            // Logs first: a kill between the writes leaves rows past the checkpoint, which a
+            // resume cuts, never a checkpoint past the logs (its rows would be lost).
             log.save()?;
             clip_log.save()?;
+            trainer.save(&policy_path)?;
             print_clip_summary(&names, &since_checkpoint);
             since_checkpoint.fill(ClipLog::default());
             plot_curves(out, &log.rows)?;
