@@ -5,8 +5,8 @@ use crate::track::RUN_POLICY;
 use anyhow::{Context, Result, bail};
 use flowmimic_control::{History, Rollout};
 use flowmimic_geom::{heading, quat_from_wxyz};
-use flowmimic_model::TrajectoryModel;
 use flowmimic_model::fm::{self, Solver};
+use flowmimic_model::{Objective, TrajectoryModel};
 use flowmimic_sim::Humanoid;
 use flowmimic_sim::{NUM_DOFS, STATE_DIM};
 use flowmimic_track::task::{OBS_DIM, Reference, Tracker};
@@ -58,14 +58,15 @@ pub fn run(
             let mut tensors = vec![("x", vec![n, f], &x[..]), ("t", vec![n], &t[..]), ("cond", vec![n, c], &cond[..])];
             tensors.push(("y", vec![n, f], &y[..]));
             let samples;
-            if model.objective.name() == "fm" {
+            let flow_matching = matches!(model.objective, Objective::Fm { .. });
+            if flow_matching {
                 samples = fm::sample(&model.net, &cond, noise.clone(), n, CHECK_NFE, Solver::Euler, None);
                 tensors.extend([("noise", vec![n, f], &noise[..]), ("euler_nfe5", vec![n, f], &samples[..])]);
             }
             let (physical, rollout_samples);
             if let Some(file) = rollout {
                 // The controller's conditioning at a rollout's step, and samples from it.
-                if model.objective.name() != "fm" {
+                if !flow_matching {
                     bail!(
                         "--rollout checks Flow Matching's Euler sampler; {} is {}",
                         path.display(),
@@ -130,14 +131,14 @@ fn rollout_conditioning(model: &TrajectoryModel, rollout: &Rollout, step: usize)
     if step > rollout.steps {
         bail!("step {step} is past the rollout's {} steps", rollout.steps);
     }
-    let (nq, steps) = (rollout.nq, rollout.steps);
+    let nq = rollout.nq;
     let mut history = History::new(layout.spec);
     for k in 0..=step {
         let state: [f32; STATE_DIM] = rollout.state[k * STATE_DIM..(k + 1) * STATE_DIM].try_into()?;
         let q = &rollout.qpos[k * nq..(k + 1) * nq];
         let rot = quat_from_wxyz([q[3], q[4], q[5], q[6]].map(f64::from));
         history.push(state, [q[0], q[1], heading(rot) as f32]);
-        if k < step.min(steps) {
+        if k < step {
             history.act(&rollout.action[k * NUM_DOFS..(k + 1) * NUM_DOFS]);
         }
     }
