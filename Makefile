@@ -5,7 +5,7 @@ MUJOCO := third_party/mujoco/libmujoco.so
 # numpy and onnxruntime for the ONNX export check (optional: skipped when they cannot be installed).
 PYDEPS := third_party/python
 
-.PHONY: run demo test lint bench mujoco
+.PHONY: run demo test lint bench mujoco chromium
 
 # The whole pipeline on the cpu preset: clips -> experts -> rollouts -> FM and DDPM -> evaluation.
 run: $(MUJOCO)
@@ -17,7 +17,7 @@ demo: $(MUJOCO)
 	cargo run --release -- render runs/demo/joystick.rollout.safetensors
 	cargo run --release -- render runs/demo/reach.rollout.safetensors
 
-test: $(MUJOCO) $(PYDEPS)
+test: $(MUJOCO) $(PYDEPS) chromium
 	cargo test --workspace
 
 lint: $(MUJOCO)
@@ -35,3 +35,7 @@ $(MUJOCO):
 
 $(PYDEPS):
 	./scripts/fetch-pydeps.sh
+
+# Headless Chromium for the browser tests (optional: skipped with a message without it).
+chromium:
+	./scripts/fetch-chromium.sh

@@ -140,6 +140,29 @@ enum Command {
         #[arg(long, default_value_t = 8000)]
         port: u16,
     },
+    /// Steer the humanoid live from the browser: the guided controller runs paced at 30 Hz and
+    /// serves a page on 127.0.0.1 (WASD or arrows walk, Q/E turn, a gamepad's sticks do the same;
+    /// click the ground for a waypoint; place a hand target; push, reset, record). Ctrl-C stops it.
+    Play {
+        /// Model directory (`flowmimic train` writes it).
+        #[arg(long, default_value = "pretrained/models/fm")]
+        model: PathBuf,
+        /// Port on 127.0.0.1 (0: any free one).
+        #[arg(long, default_value_t = 8000)]
+        port: u16,
+        /// Network evaluations per control step at the start (the page changes it).
+        #[arg(long, default_value_t = 5)]
+        nfe: usize,
+        /// Guidance scale at the start (the page changes it).
+        #[arg(long, default_value_t = 10.0)]
+        guidance_scale: f32,
+        /// Start from this clip's frames (default: the generated straight walk).
+        #[arg(long)]
+        clip: Option<PathBuf>,
+        /// Where the record button writes rollouts.
+        #[arg(long, default_value = "runs/play")]
+        record_dir: PathBuf,
+    },
     /// The paper's experiments: survival, joystick, reach, compose, quality, latency. Each
     /// writes CSV, JSON and plots and appends to <out>/report.md.
     #[command(subcommand)]
@@ -241,6 +264,9 @@ fn run(cli: Cli) -> Result<()> {
             viz::render(&Humanoid::new(config.sim)?, &file, out, env, (width, height), fps)?
         }
         Command::View { file, env, port } => viz::view(&Humanoid::new(config.sim)?, &file, env, port)?,
+        Command::Play { model, port, nfe, guidance_scale, clip, record_dir } => {
+            run::play(&Humanoid::new(config.sim)?, &model, port, nfe, guidance_scale, clip.as_deref(), record_dir)?
+        }
         Command::Eval(cmd) => eval::run(cmd, &Humanoid::new(config.sim)?)?,
         Command::Run(args) => run::run(args, &Humanoid::new(config.sim)?)?,
         Command::Train { dataset, objective, out, steps, resume } => {

@@ -5,6 +5,7 @@ use clap::{Args, ValueEnum};
 use flowmimic_control::{ControlConfig, Hand, JoystickSegment, Rollout, StepReport, Task};
 use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_motion::Clip;
+use flowmimic_serve::play::PlayConfig;
 use flowmimic_sim::Humanoid;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -235,4 +236,39 @@ fn summarise(r: &Rollout) {
         1e3 / (m + p),
         if f64::from(1e3 / (m + p)) >= flowmimic_sim::CONTROL_HZ { "real time" } else { "slower than real time" }
     );
+}
+
+/// `flowmimic play`: the live session on 127.0.0.1:`port`.
+pub fn play(
+    humanoid: &Arc<Humanoid>,
+    model_dir: &Path,
+    port: u16,
+    nfe: usize,
+    guidance_scale: f32,
+    clip: Option<&Path>,
+    record_dir: PathBuf,
+) -> Result<()> {
+    let model = load_model(model_dir)?;
+    let clip = start_clip(humanoid, clip)?;
+    let control = ControlConfig {
+        nfe,
+        guidance_scale,
+        gradient: Gradient::ThroughNetwork,
+        guidance_steps: None,
+        seconds: 0.0,
+        execute: 1,
+        paced: true,
+        seed: 0,
+        kick_every: 0.0,
+        kick_max: 0.0,
+    };
+    let model_name = model_dir.display().to_string();
+    let session = flowmimic_serve::play::Session::start(
+        model,
+        Arc::clone(humanoid),
+        clip,
+        PlayConfig { control, record_dir, model_name },
+    )?;
+    flowmimic_serve::serve(session.router(), port, |url| println!("play: {url} (Ctrl-C stops it)"))?;
+    Ok(())
 }

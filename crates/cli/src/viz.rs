@@ -3,9 +3,9 @@
 use anyhow::{Result, bail};
 use flowmimic_control::Rollout;
 use flowmimic_motion::Clip;
+use flowmimic_serve::view::ViewData;
 use flowmimic_sim::Humanoid;
 use flowmimic_viz::Frames;
-use flowmimic_viz::viewer::{self, ViewData};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -61,6 +61,8 @@ pub fn view(humanoid: &Arc<Humanoid>, file: &Path, env: usize, port: u16) -> Res
         Source::Clip(clip) => ViewData::from_clip(clip),
         Source::Rollout(r, env) => ViewData::from_rollout(r, *env, &stem),
     };
-    viewer::serve(&data, port, |url| println!("viewer: {url} (Ctrl-C stops it)"))?;
+    flowmimic_serve::serve(flowmimic_serve::view::router(&data), port, |url| {
+        println!("viewer: {url} (Ctrl-C stops it)")
+    })?;
     Ok(())
 }

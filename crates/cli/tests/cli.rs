@@ -207,12 +207,12 @@ fn viewer_serves_and_draws(dir: &Path, file: &str) {
     // An idle client (connected, saying nothing) does not stop others being served.
     let _idle = std::net::TcpStream::connect(&host).unwrap();
     let mut foreign = std::net::TcpStream::connect(&host).unwrap();
-    write!(foreign, "GET /data.json HTTP/1.1\r\nHost: evil.example\r\n\r\n").unwrap();
+    write!(foreign, "GET /data.json HTTP/1.1\r\nHost: evil.example\r\nConnection: close\r\n\r\n").unwrap();
     let mut reply = String::new();
     foreign.read_to_string(&mut reply).unwrap();
     assert!(reply.starts_with("HTTP/1.1 403"), "a foreign Host header was answered: {reply:.100}");
     let mut stream = std::net::TcpStream::connect(&host).unwrap();
-    write!(stream, "GET /data.json HTTP/1.1\r\nHost: {host}\r\n\r\n").unwrap();
+    write!(stream, "GET /data.json HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n").unwrap();
     let mut reply = String::new();
     stream.read_to_string(&mut reply).unwrap();
     assert!(

@@ -4,12 +4,12 @@
 
 use crate::history::History;
 use crate::rollout::{Rollout, RolloutInfo};
-use crate::task::{COMMAND_DIM, Task};
+use crate::task::Task;
 use crate::{ControlError, Layout};
 use flowmimic_geom::CharFrame;
 use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
 use flowmimic_motion::Clip;
-use flowmimic_sim::{CONTROL_HZ, Env, Humanoid, NUM_BODIES, NUM_DOFS};
+use flowmimic_sim::{CONTROL_HZ, Env, Humanoid, NUM_DOFS};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
@@ -90,6 +90,215 @@ pub fn start_frame(clip_len: usize, history: usize, e: usize) -> usize {
     history + (e * 7) % (clip_len - history - 1)
 }
 
+/// The receding-horizon loop over a batch of environments, one control step at a time:
+/// [`run`] drives it through an episode and records it, `flowmimic play` drives it live.
+pub struct Controller<'m> {
+    model: &'m TrajectoryModel,
+    config: ControlConfig,
+    envs: Vec<Env>,
+    histories: Vec<History>,
+    /// Each environment's current plan (physical units) and how many of its actions ran.
+    plans: Vec<Option<(Vec<f32>, usize)>>,
+    alive: Vec<bool>,
+    rng: StdRng,
+    step: usize,
+}
+
+/// What one control step did.
+#[derive(Clone, Debug)]
+pub struct StepOutcome {
+    /// The action each environment executed (`None`: it had fallen before this step).
+    pub actions: Vec<Option<Vec<f32>>>,
+    /// Environments that fell (or whose physics diverged) during this step.
+    pub fell: Vec<usize>,
+    pub model_ms: f32,
+    pub physics_ms: f32,
+}
+
+/// Refuses sampler settings that cannot run: no solver steps, a negative or NaN scale.
+fn check_sampler(config: &ControlConfig) -> Result<(), ControlError> {
+    if config.nfe == 0 {
+        return Err(ControlError::BadCommand { what: "NFE (at least 1)", value: 0.0 });
+    }
+    if !config.guidance_scale.is_finite() || config.guidance_scale < 0.0 {
+        return Err(ControlError::BadCommand { what: "guidance scale", value: f64::from(config.guidance_scale) });
+    }
+    Ok(())
+}
+
+impl<'m> Controller<'m> {
+    /// `envs` environments started from frames of `clip` (see [`start_frame`]).
+    pub fn new(
+        model: &'m TrajectoryModel,
+        humanoid: &Arc<Humanoid>,
+        clip: &Clip,
+        envs: usize,
+        config: &ControlConfig,
+    ) -> Result<Self, ControlError> {
+        check_sampler(config)?;
+        let n_hist = model.layout().spec.history;
+        if clip.len() < n_hist + 2 {
+            return Err(ControlError::Start(format!("clip '{}' is shorter than the history", clip.name)));
+        }
+        let mut this = Self {
+            model,
+            config: config.clone(),
+            envs: (0..envs).map(|_| humanoid.env()).collect(),
+            histories: (0..envs).map(|_| History::new(model.layout().spec)).collect(),
+            plans: vec![None; envs],
+            alive: vec![true; envs],
+            rng: StdRng::seed_from_u64(config.seed),
+            step: 0,
+        };
+        for e in 0..envs {
+            this.restart(e, clip, start_frame(clip.len(), n_hist, e))?;
+        }
+        Ok(this)
+    }
+
+    /// Puts environment `e` back at `frame` of `clip`, standing, with a fresh history.
+    pub fn restart(&mut self, e: usize, clip: &Clip, frame: usize) -> Result<(), ControlError> {
+        let n_hist = self.model.layout().spec.history;
+        if frame < n_hist || frame + 1 >= clip.len() {
+            return Err(ControlError::Start(format!(
+                "frame {frame} of clip '{}' leaves no room for the history",
+                clip.name
+            )));
+        }
+        self.histories[e] = History::new(self.model.layout().spec);
+        start_from_clip(&mut self.envs[e], &mut self.histories[e], clip, frame, n_hist)?;
+        self.plans[e] = None;
+        self.alive[e] = true;
+        Ok(())
+    }
+
+    /// Changes the sampler (NFE, scale, gradient, interval) from the next step on.
+    pub fn set_config(&mut self, config: ControlConfig) -> Result<(), ControlError> {
+        check_sampler(&config)?;
+        self.config = config;
+        Ok(())
+    }
+
+    pub fn config(&self) -> &ControlConfig {
+        &self.config
+    }
+
+    pub fn env(&self, e: usize) -> &Env {
+        &self.envs[e]
+    }
+
+    pub fn is_alive(&self, e: usize) -> bool {
+        self.alive[e]
+    }
+
+    /// Control steps taken so far.
+    pub fn steps(&self) -> usize {
+        self.step
+    }
+
+    /// Environment `e`'s current plan (the trajectory being executed, physical units).
+    pub fn plan(&self, e: usize) -> Option<&[f32]> {
+        self.plans[e].as_ref().map(|p| p.0.as_slice())
+    }
+
+    /// A planar root-velocity push on environment `e` now (m/s, world frame).
+    pub fn kick(&mut self, e: usize, velocity: [f64; 2]) -> Result<(), ControlError> {
+        Ok(self.envs[e].kick(velocity)?)
+    }
+
+    /// One control step: every environment still standing samples a plan if its last one is
+    /// used up (all in one batched model call, steered by its task's cost at `time`),
+    /// executes the next action, and is checked for a fall.
+    pub fn step(&mut self, tasks: &[Task], time: f64) -> Result<StepOutcome, ControlError> {
+        let model = self.model;
+        let layout = model.layout();
+        let traj = Layout { horizon: layout.spec.horizon };
+        let every = self.config.execute.clamp(1, traj.horizon + 1);
+        let alive: Vec<usize> = (0..self.envs.len()).filter(|&e| self.alive[e]).collect();
+        let t_model = Instant::now();
+        let replan: Vec<usize> =
+            alive.iter().copied().filter(|&e| self.plans[e].as_ref().is_none_or(|p| p.1 >= every)).collect();
+        if !replan.is_empty() {
+            let mut cond = Vec::with_capacity(replan.len() * layout.cond_len());
+            let mut costs: Vec<Option<crate::Sum>> = Vec::with_capacity(replan.len());
+            for &e in &replan {
+                let (states, actions) = self.histories[e].conditioning();
+                cond.extend(layout.interleave(&states, &actions));
+                let b = self.envs[e].bodies();
+                costs.push(tasks[e].cost(traj, time, &CharFrame::from_root(b.pos[0], b.rot[0]))?);
+            }
+            let future_std = &model.norm.std[layout.cond_len()..];
+            let grad = |x: &[f32], n: usize| crate::costs::batch_guidance_grad(&costs, future_std, x, n);
+            let guided = self.config.guidance_scale > 0.0 && costs.iter().any(Option::is_some);
+            let (g0, g1) = self.config.guidance_steps();
+            let guidance = guided.then_some(TaskGuidance {
+                weight: self.config.guidance_scale,
+                grad: &grad,
+                steps: g0..g1,
+                gradient: self.config.gradient,
+            });
+            let futures = model.sample(&cond, replan.len(), self.config.nfe, guidance.as_ref(), &mut self.rng);
+            let len = traj.len();
+            for (i, &e) in replan.iter().enumerate() {
+                self.plans[e] = Some((futures[i * len..(i + 1) * len].to_vec(), 0));
+            }
+        }
+        let model_ms = t_model.elapsed().as_secs_f32() * 1e3;
+
+        let t_physics = Instant::now();
+        let mut actions: Vec<Option<Vec<f32>>> = vec![None; self.envs.len()];
+        for &e in &alive {
+            let (plan, used) = self.plans[e].as_mut().expect("planned above");
+            let at = traj.action(*used);
+            *used += 1;
+            let a: Vec<f32> = plan[at..at + NUM_DOFS].iter().map(|a| a.clamp(-1.0, 1.0)).collect();
+            if let Some(j) = a.iter().position(|a| !a.is_finite()) {
+                return Err(ControlError::NonFinite { env: e, step: self.step, index: j });
+            }
+            actions[e] = Some(a);
+        }
+        let kick_due = self.config.kick_every > 0.0
+            && self.step > 0
+            && self.step.is_multiple_of(((self.config.kick_every * CONTROL_HZ).round() as usize).max(1));
+        let kick_max = self.config.kick_max;
+        let rng = &mut self.rng;
+        let kicks: Vec<Option<[f64; 2]>> = alive
+            .iter()
+            .map(|_| {
+                kick_due.then(|| {
+                    let (angle, speed) = (rng.random::<f64>() * std::f64::consts::TAU, rng.random::<f64>() * kick_max);
+                    [speed * angle.cos(), speed * angle.sin()]
+                })
+            })
+            .collect();
+        let mut stepping: Vec<(&mut Env, &Vec<f32>)> =
+            self.envs.iter_mut().zip(&actions).filter_map(|(env, a)| a.as_ref().map(|a| (env, a))).collect();
+        let standing: Vec<bool> = stepping
+            .par_iter_mut()
+            .zip(&kicks)
+            .map(|((env, a), kick)| {
+                // A physics blow-up ends the episode like a fall.
+                let ok = env.step(a).is_ok() && kick.is_none_or(|k| env.kick(k).is_ok());
+                ok && !env.fallen()
+            })
+            .collect();
+        drop(stepping);
+        let physics_ms = t_physics.elapsed().as_secs_f32() * 1e3;
+        let mut fell = Vec::new();
+        for (&e, standing) in alive.iter().zip(standing) {
+            self.histories[e].act(actions[e].as_ref().expect("acted above"));
+            if standing {
+                self.histories[e].observe(&self.envs[e].bodies());
+            } else {
+                self.alive[e] = false;
+                fell.push(e);
+            }
+        }
+        self.step += 1;
+        Ok(StepOutcome { actions, fell, model_ms, physics_ms })
+    }
+}
+
 /// Runs `tasks.len()` environments for `config.seconds` from frames of `clip`.
 pub fn run(
     model: &TrajectoryModel,
@@ -100,12 +309,6 @@ pub fn run(
     model_name: &str,
     mut on_step: impl FnMut(&StepReport),
 ) -> Result<Rollout, ControlError> {
-    if config.nfe == 0 {
-        return Err(ControlError::BadCommand { what: "NFE (at least 1)", value: 0.0 });
-    }
-    if !config.guidance_scale.is_finite() || config.guidance_scale < 0.0 {
-        return Err(ControlError::BadCommand { what: "guidance scale", value: f64::from(config.guidance_scale) });
-    }
     // At least one control step, at most a day.
     if !(config.seconds.is_finite() && config.seconds * CONTROL_HZ >= 0.5 && config.seconds <= 86_400.0) {
         return Err(ControlError::BadCommand {
@@ -116,26 +319,15 @@ pub fn run(
     for task in &tasks {
         task.validate()?;
     }
-    let layout = model.layout();
-    let (n_hist, horizon) = (layout.spec.history, layout.spec.horizon);
-    let traj = Layout { horizon };
+    let mut controller = Controller::new(model, humanoid, clip, tasks.len(), config)?;
     let envs_n = tasks.len();
     let steps = (config.seconds * CONTROL_HZ).round() as usize;
-    let nq = humanoid.nq();
-    if clip.len() < n_hist + 2 {
-        return Err(ControlError::Start(format!("clip '{}' is shorter than the history", clip.name)));
-    }
-    let mut envs: Vec<Env> = (0..envs_n).map(|_| humanoid.env()).collect();
-    let mut histories: Vec<History> = (0..envs_n).map(|_| History::new(layout.spec)).collect();
-    for (e, (env, history)) in envs.iter_mut().zip(&mut histories).enumerate() {
-        start_from_clip(env, history, clip, start_frame(clip.len(), n_hist, e), n_hist)?;
-    }
-    let mut out = Rollout {
-        info: RolloutInfo {
+    let mut out = Rollout::new(
+        RolloutInfo {
             model: model_name.to_string(),
             objective: model.objective.name().to_string(),
             nfe: config.nfe,
-            horizon,
+            horizon: model.layout().spec.horizon,
             guidance_scale: config.guidance_scale,
             guidance_steps: config.guidance_steps(),
             gradient: config.gradient,
@@ -145,143 +337,43 @@ pub fn run(
             kick_every: config.kick_every,
             kick_max: config.kick_max,
         },
-        envs: envs_n,
+        envs_n,
         steps,
-        nq,
-        qpos: vec![0.0; envs_n * (steps + 1) * nq],
-        state: vec![0.0; envs_n * (steps + 1) * flowmimic_sim::STATE_DIM],
-        body_pos: vec![0.0; envs_n * (steps + 1) * NUM_BODIES * 3],
-        action: vec![0.0; envs_n * steps * NUM_DOFS],
-        command: vec![0.0; envs_n * steps * COMMAND_DIM],
-        survived: vec![steps; envs_n],
-        model_ms: Vec::with_capacity(steps),
-        physics_ms: Vec::with_capacity(steps),
-    };
-    let record = |out: &mut Rollout, e: usize, k: usize, env: &Env| {
-        let sd = flowmimic_sim::STATE_DIM;
-        let at = e * (steps + 1) + k;
-        out.state[at * sd..(at + 1) * sd].copy_from_slice(&env.state());
-        for (o, q) in out.qpos[at * nq..(at + 1) * nq].iter_mut().zip(env.qpos()) {
-            *o = *q as f32;
-        }
-        let bodies = env.bodies().pos;
-        let b = &mut out.body_pos[at * NUM_BODIES * 3..(at + 1) * NUM_BODIES * 3];
-        for (o, p) in b.chunks_exact_mut(3).zip(&bodies) {
-            o.copy_from_slice(&[p.x as f32, p.y as f32, p.z as f32]);
-        }
-    };
-    for (e, env) in envs.iter().enumerate() {
-        record(&mut out, e, 0, env);
+        humanoid.nq(),
+    );
+    for e in 0..envs_n {
+        out.record(e, 0, controller.env(e));
     }
-    let mut rng = StdRng::seed_from_u64(config.seed);
-    let mut alive: Vec<usize> = (0..envs_n).collect();
-    let (g0, g1) = config.guidance_steps();
-    let future_std = &model.norm.std[layout.cond_len()..];
-    // Each environment's current plan and how many of its actions have been executed.
-    let every = config.execute.clamp(1, horizon + 1);
-    let mut plans: Vec<Option<(Vec<f32>, usize)>> = vec![None; envs_n];
     let started = Instant::now();
     for step in 0..steps {
         let time = step as f64 / CONTROL_HZ;
-        let t_model = Instant::now();
-        // Environments whose plan is used up sample a new one, all in one batched call.
-        let replan: Vec<usize> =
-            alive.iter().copied().filter(|&e| plans[e].as_ref().is_none_or(|p| p.1 >= every)).collect();
-        let mut cond = Vec::with_capacity(replan.len() * layout.cond_len());
-        let mut costs: Vec<Option<crate::Sum>> = Vec::with_capacity(replan.len());
-        for &e in &replan {
-            let (states, actions) = histories[e].conditioning();
-            cond.extend(layout.interleave(&states, &actions));
-            let b = envs[e].bodies();
-            costs.push(tasks[e].cost(traj, time, &CharFrame::from_root(b.pos[0], b.rot[0]))?);
-        }
-        let len = traj.len();
-        if !replan.is_empty() {
-            let grad = |x: &[f32], n: usize| crate::costs::batch_guidance_grad(&costs, future_std, x, n);
-            let guided = config.guidance_scale > 0.0 && costs.iter().any(Option::is_some);
-            let guidance = guided.then_some(TaskGuidance {
-                weight: config.guidance_scale,
-                grad: &grad,
-                steps: g0..g1,
-                gradient: config.gradient,
-            });
-            let futures = model.sample(&cond, replan.len(), config.nfe, guidance.as_ref(), &mut rng);
-            for (i, &e) in replan.iter().enumerate() {
-                plans[e] = Some((futures[i * len..(i + 1) * len].to_vec(), 0));
+        let outcome = controller.step(&tasks, time)?;
+        for (e, a) in outcome.actions.iter().enumerate() {
+            if let Some(a) = a {
+                out.record_action(e, step, a, &tasks[e].command(time));
             }
         }
-        let model_ms = t_model.elapsed().as_secs_f32() * 1e3;
-
-        let t_physics = Instant::now();
-        let mut actions: Vec<Vec<f32>> = Vec::with_capacity(alive.len());
-        for &e in &alive {
-            let (plan, used) = plans[e].as_mut().expect("planned above");
-            let at = traj.action(*used);
-            *used += 1;
-            let a: Vec<f32> = plan[at..at + NUM_DOFS].iter().map(|a| a.clamp(-1.0, 1.0)).collect();
-            if let Some(j) = a.iter().position(|a| !a.is_finite()) {
-                return Err(ControlError::NonFinite { env: e, step, index: j });
-            }
-            let at = (e * steps + step) * NUM_DOFS;
-            out.action[at..at + NUM_DOFS].copy_from_slice(&a);
-            let c = tasks[e].command(time);
-            out.command[(e * steps + step) * COMMAND_DIM..(e * steps + step + 1) * COMMAND_DIM].copy_from_slice(&c);
-            actions.push(a);
+        for &e in &outcome.fell {
+            out.survived[e] = step + 1;
         }
-        let kick_due = config.kick_every > 0.0
-            && step > 0
-            && step.is_multiple_of(((config.kick_every * CONTROL_HZ).round() as usize).max(1));
-        let kicks: Vec<Option<[f64; 2]>> = alive
-            .iter()
-            .map(|_| {
-                kick_due.then(|| {
-                    let (angle, speed) =
-                        (rng.random::<f64>() * std::f64::consts::TAU, rng.random::<f64>() * config.kick_max);
-                    [speed * angle.cos(), speed * angle.sin()]
-                })
-            })
-            .collect();
-        let mut stepping: Vec<(usize, &mut Env)> =
-            envs.iter_mut().enumerate().filter(|(e, _)| alive.contains(e)).collect();
-        let results: Vec<bool> = stepping
-            .par_iter_mut()
-            .zip(actions.par_iter().zip(&kicks))
-            .map(|((_, env), (a, kick))| {
-                // A physics blow-up ends the episode like a fall.
-                let ok = env.step(a).is_ok() && kick.is_none_or(|k| env.kick(k).is_ok());
-                ok && !env.fallen()
-            })
-            .collect();
-        drop(stepping);
-        let physics_ms = t_physics.elapsed().as_secs_f32() * 1e3;
-        let mut still = Vec::with_capacity(alive.len());
-        for (i, &e) in alive.iter().enumerate() {
-            histories[e].act(&actions[i]);
-            if results[i] {
-                histories[e].observe(&envs[e].bodies());
-                still.push(e);
-            } else {
-                out.survived[e] = step + 1;
-            }
-        }
-        alive = still;
         for e in 0..envs_n {
-            if alive.contains(&e) || out.survived[e] == step + 1 {
-                record(&mut out, e, step + 1, &envs[e]);
+            if controller.is_alive(e) || out.survived[e] == step + 1 {
+                out.record(e, step + 1, controller.env(e));
             } else {
                 out.repeat_row(e, step);
             }
         }
-        out.model_ms.push(model_ms);
-        out.physics_ms.push(physics_ms);
-        on_step(&StepReport { step: step + 1, alive: alive.len(), model_ms, physics_ms });
+        let alive = (0..envs_n).filter(|&e| controller.is_alive(e)).count();
+        out.model_ms.push(outcome.model_ms);
+        out.physics_ms.push(outcome.physics_ms);
+        on_step(&StepReport { step: step + 1, alive, model_ms: outcome.model_ms, physics_ms: outcome.physics_ms });
         if config.paced {
             let due = Duration::from_secs_f64((step + 1) as f64 / CONTROL_HZ);
             if let Some(wait) = due.checked_sub(started.elapsed()) {
                 std::thread::sleep(wait);
             }
         }
-        if alive.is_empty() {
+        if alive == 0 {
             // Everyone fell: pad the remaining steps with the last rows.
             for k in step + 1..steps {
                 (0..envs_n).for_each(|e| out.repeat_row(e, k));

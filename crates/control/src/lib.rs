@@ -15,7 +15,7 @@ pub mod layout;
 pub mod rollout;
 pub mod task;
 
-pub use controller::{ControlConfig, StepReport, run, start_from_clip};
+pub use controller::{ControlConfig, Controller, StepOutcome, StepReport, run, start_from_clip};
 pub use costs::{Cost, Heading, Joystick, Reach, Sum, Waypoint};
 pub use history::History;
 pub use layout::Layout;

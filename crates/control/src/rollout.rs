@@ -15,7 +15,7 @@
 //! [`RolloutInfo`].
 
 use flowmimic_io::tensors::{self, TensorError, TensorFile};
-use flowmimic_sim::{NUM_BODIES, NUM_DOFS, STATE_DIM};
+use flowmimic_sim::{Env, NUM_BODIES, NUM_DOFS, STATE_DIM};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::Path;
@@ -65,6 +65,45 @@ pub struct Rollout {
 }
 
 impl Rollout {
+    /// An empty record of `envs` environments over `steps` control steps (every environment
+    /// assumed to survive until [`Rollout::survived`] says otherwise).
+    pub fn new(info: RolloutInfo, envs: usize, steps: usize, nq: usize) -> Self {
+        Self {
+            info,
+            envs,
+            steps,
+            nq,
+            qpos: vec![0.0; envs * (steps + 1) * nq],
+            state: vec![0.0; envs * (steps + 1) * STATE_DIM],
+            body_pos: vec![0.0; envs * (steps + 1) * NUM_BODIES * 3],
+            action: vec![0.0; envs * steps * NUM_DOFS],
+            command: vec![0.0; envs * steps * COMMAND_DIM],
+            survived: vec![steps; envs],
+            model_ms: Vec::with_capacity(steps),
+            physics_ms: Vec::with_capacity(steps),
+        }
+    }
+
+    /// Writes row `k` (0..=T) of environment `e` from the simulator.
+    pub fn record(&mut self, e: usize, k: usize, env: &Env) {
+        let at = e * (self.steps + 1) + k;
+        self.state[at * STATE_DIM..(at + 1) * STATE_DIM].copy_from_slice(&env.state());
+        for (o, q) in self.qpos[at * self.nq..(at + 1) * self.nq].iter_mut().zip(env.qpos()) {
+            *o = *q as f32;
+        }
+        let b = &mut self.body_pos[at * NUM_BODIES * 3..(at + 1) * NUM_BODIES * 3];
+        for (o, p) in b.chunks_exact_mut(3).zip(&env.bodies().pos) {
+            o.copy_from_slice(&[p.x as f32, p.y as f32, p.z as f32]);
+        }
+    }
+
+    /// Writes the action executed and the command in force at step `k` (0..T) of environment `e`.
+    pub fn record_action(&mut self, e: usize, k: usize, action: &[f32], command: &[f32; COMMAND_DIM]) {
+        let at = e * self.steps + k;
+        self.action[at * NUM_DOFS..(at + 1) * NUM_DOFS].copy_from_slice(action);
+        self.command[at * COMMAND_DIM..(at + 1) * COMMAND_DIM].copy_from_slice(command);
+    }
+
     /// State `k` (0..=T) of environment `e`.
     pub fn state(&self, e: usize, k: usize) -> &[f32] {
         let at = (e * (self.steps + 1) + k) * STATE_DIM;

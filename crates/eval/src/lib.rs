@@ -1,8 +1,9 @@
 //! The paper's evaluation: metrics as plain functions of recorded rollouts (so they can be
 //! checked on hand-made traces), the [`protocols`] that produce those rollouts, and the
 //! [`sweep`] that runs a protocol over models and sampler points, stores every trial and writes
-//! the report.
+//! the report, and the paper's [`experiments`] built from them.
 
+pub mod experiments;
 pub mod protocols;
 pub mod sweep;
 

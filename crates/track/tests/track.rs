@@ -33,8 +33,15 @@ fn reference_state_scores_near_the_maximum_and_falling_terminates() {
     // Following the reference's own next pose for one step tracks it closely.
     let (terms, ending) = tracker.step(&reference, &[0.0; NUM_DOFS], &cfg, &mut rng);
     assert_eq!(ending, Ending::None);
-    assert!(terms.total() > 4.0, "reward {} of 5 on the reference: {terms:?}", terms.total());
+    assert!(terms.total() > 5.0, "reward {} of 6 on the reference: {terms:?}", terms.total());
     assert!(terms.body_pos_error < 0.03, "{terms:?}");
+    assert!(terms.root_vel > 0.8, "the root moves as the reference's: {terms:?}");
+    // Walking forward where the reference walks backward costs the root velocity term.
+    let back = generate(&h, "back", &GaitParams { duration: 2.0, speed: -0.6, ..Default::default() }).unwrap().0;
+    let back = Reference::new(back);
+    tracker.reset(&reference, 10, &cfg, &mut rng).unwrap();
+    let (terms, _) = tracker.step(&back, &[0.0; NUM_DOFS], &cfg, &mut rng);
+    assert!(terms.root_vel < 0.01, "1.6 m/s off the reference's root velocity: {terms:?}");
     // Without balance the open-loop reference falls within a few seconds, and that ends it.
     let mut ended = None;
     for step in 0..50 {

@@ -2,9 +2,7 @@
 //! into an animated GIF (no system dependency), an MP4 (through `ffmpeg` when installed) and a
 //! contact sheet PNG of key frames. The camera follows the pelvis; a rollout's guidance shows as
 //! markers: the hand target (red sphere), the waypoint (green) and the commanded velocity
-//! (blue arrow at the feet). [`viewer`] serves the same files to a browser.
-
-pub mod viewer;
+//! (blue arrow at the feet). `flowmimic view` (crate `flowmimic-serve`) plays the same files in a browser.
 
 use flowmimic_control::Rollout;
 use flowmimic_geom::{heading, quat_from_wxyz};
@@ -24,8 +22,6 @@ pub enum VizError {
     File(#[from] flowmimic_io::FileError),
     #[error("{path}: {message}")]
     Output { path: PathBuf, message: String },
-    #[error("viewer: {0}")]
-    Serve(String),
 }
 
 /// A sequence of poses at 30 Hz with their markers.

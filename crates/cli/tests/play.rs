@@ -1,0 +1,258 @@
+//! `flowmimic play` with the shipped model: the WebSocket protocol from a Rust client, and the
+//! page in headless Chromium driven through the DevTools protocol (keys pressed as a user
+//! presses them). Without Chromium (`make test` installs Debian's), the browser part is skipped
+//! with a message.
+
+mod common;
+
+use base64::Engine;
+use serde_json::{Value, json};
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+use tungstenite::{Message, WebSocket, stream::MaybeTlsStream};
+
+type Socket = WebSocket<MaybeTlsStream<TcpStream>>;
+
+const MODEL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models/fm");
+
+/// A child process killed when the test ends, passed or not.
+struct Killed(Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// `flowmimic play` on a free port: the process and its `host:port`.
+fn start_play(dir: &std::path::Path) -> (Killed, String) {
+    let mut server = common::command(dir, &["play", "--model", MODEL, "--port", "0", "--record-dir", "rec"])
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(server.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let url = line.split_whitespace().nth(1).unwrap_or_else(|| panic!("no address printed: {line}"));
+    (Killed(server), url.trim_start_matches("http://").trim_end_matches('/').to_string())
+}
+
+fn connect(host: &str) -> Socket {
+    let (socket, _) = tungstenite::connect(format!("ws://{host}/ws")).unwrap();
+    socket
+}
+
+/// The next message of `kind` (frames keep coming between the others).
+fn next_of(socket: &mut Socket, kind: &str) -> Value {
+    for _ in 0..200 {
+        if let Message::Text(t) = socket.read().unwrap() {
+            let m: Value = serde_json::from_str(t.as_str()).unwrap();
+            if m["type"] == kind {
+                return m;
+            }
+        }
+    }
+    panic!("no '{kind}' message in 200");
+}
+
+/// One GET: the status line and the body (read to its Content-Length: Chromium's DevTools
+/// server keeps the connection open).
+fn http_get(host: &str, path: &str, host_header: &str) -> (String, String) {
+    let mut stream = TcpStream::connect(host).unwrap();
+    write!(stream, "GET {path} HTTP/1.1\r\nHost: {host_header}\r\nConnection: close\r\n\r\n").unwrap();
+    let mut reader = BufReader::new(stream);
+    let (mut status, mut line, mut length) = (String::new(), String::new(), 0);
+    reader.read_line(&mut status).unwrap();
+    while reader.read_line(&mut line).unwrap() > 2 {
+        if let Some((name, value)) = line.split_once(':')
+            && name.eq_ignore_ascii_case("content-length")
+        {
+            length = value.trim().parse().unwrap();
+        }
+        line.clear();
+    }
+    let mut body = vec![0; length];
+    reader.read_exact(&mut body).unwrap();
+    (status, String::from_utf8(body).unwrap())
+}
+
+#[test]
+fn live_play_speaks_its_protocol_and_survives_bad_clients() {
+    let dir = common::workdir("play-protocol");
+    let (_server, host) = start_play(&dir);
+    // An idle connection blocks nobody; a foreign Host or Origin is refused.
+    let _idle = TcpStream::connect(&host).unwrap();
+    assert!(http_get(&host, "/", &host).0.starts_with("HTTP/1.1 200"));
+    assert!(http_get(&host, "/", "evil.example").0.starts_with("HTTP/1.1 403"));
+    let mut foreign = tungstenite::client::IntoClientRequest::into_client_request(format!("ws://{host}/ws")).unwrap();
+    foreign.headers_mut().insert("Origin", "https://evil.example".parse().unwrap());
+    assert!(tungstenite::connect(foreign).is_err(), "a page from elsewhere opened the socket");
+
+    let mut socket = connect(&host);
+    let hello = next_of(&mut socket, "hello");
+    assert_eq!(hello["names"].as_array().unwrap().len(), 24, "{hello}");
+    let frame = next_of(&mut socket, "frame");
+    assert_eq!(frame["bodies"].as_array().unwrap().len(), 24, "{frame}");
+    // Malformed, unknown, out-of-range and oversized messages each get an error; frames go on.
+    let oversized = format!("{{\"type\":\"push\",\"pad\":\"{}\"}}", "x".repeat(5000));
+    for (message, why) in [
+        ("not json", "bad message"),
+        (r#"{"type":"fly"}"#, "unknown variant"),
+        (r#"{"type":"drive","vx":40,"vy":0,"yaw_rate":0}"#, "joystick speed"),
+        (r#"{"type":"sampler","scale":1,"nfe":0}"#, "NFE"),
+        (oversized.as_str(), "limit"),
+    ] {
+        socket.send(Message::text(message)).unwrap();
+        let error = next_of(&mut socket, "error");
+        assert!(error["message"].as_str().unwrap().contains(why), "{message:.40}: {error}");
+    }
+    socket.send(Message::binary(vec![0u8; 8])).unwrap();
+    assert!(next_of(&mut socket, "error")["message"].as_str().unwrap().contains("binary"));
+    // A command is applied by the next control step, and echoed with its sequence number.
+    socket.send(Message::text(r#"{"type":"drive","vx":0.8,"vy":0,"yaw_rate":0.3,"seq":42}"#)).unwrap();
+    let applied = (0..10).map(|_| next_of(&mut socket, "frame")).find(|f| f["applied"] == 42).expect("applied");
+    assert_eq!(applied["command"], json!([0.8, 0.0, 0.3]), "{applied}");
+    // Recording writes a rollout that the other commands read.
+    socket.send(Message::text(r#"{"type":"record"}"#)).unwrap();
+    (0..10).for_each(|_| drop(next_of(&mut socket, "frame")));
+    socket.send(Message::text(r#"{"type":"record"}"#)).unwrap();
+    let notice = next_of(&mut socket, "notice");
+    let path = notice["message"].as_str().unwrap().split(" to ").nth(1).expect("a path").to_string();
+    assert!(path.ends_with(".rollout.safetensors"), "{notice}");
+    let rollout = flowmimic_control::Rollout::load(&dir.join(&path)).unwrap();
+    assert!(rollout.envs == 1 && rollout.steps >= 9 && rollout.survived == [rollout.steps], "{notice}");
+    // A client past the transport limit is dropped; the session serves the next one.
+    socket.send(Message::text("y".repeat(100_000))).ok();
+    drop(socket);
+    let mut again = connect(&host);
+    next_of(&mut again, "frame");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+fn chromium() -> Option<&'static str> {
+    ["chromium", "chromium-browser", "google-chrome"]
+        .into_iter()
+        .find(|b| Command::new(b).arg("--version").output().is_ok_and(|o| o.status.success()))
+}
+
+/// A DevTools-protocol connection to one page.
+struct Page {
+    socket: Socket,
+    id: u64,
+}
+
+impl Page {
+    fn call(&mut self, method: &str, params: Value) -> Value {
+        self.id += 1;
+        self.socket
+            .send(Message::text(json!({"id": self.id, "method": method, "params": params}).to_string()))
+            .unwrap();
+        loop {
+            if let Message::Text(t) = self.socket.read().unwrap() {
+                let m: Value = serde_json::from_str(t.as_str()).unwrap();
+                if m["id"] == self.id {
+                    assert!(m.get("error").is_none(), "{method}: {m}");
+                    return m["result"].clone();
+                }
+            }
+        }
+    }
+
+    fn eval(&mut self, expression: &str) -> Value {
+        self.call("Runtime.evaluate", json!({"expression": expression, "returnByValue": true}))["result"]["value"]
+            .clone()
+    }
+
+    fn key(&mut self, kind: &str, code: &str, key: &str, vk: u32) {
+        let params = json!({"type": kind, "code": code, "key": key, "windowsVirtualKeyCode": vk});
+        self.call("Input.dispatchKeyEvent", params);
+    }
+
+    /// Polls `expression` every 50 ms until it is true, up to `seconds`.
+    fn wait_for(&mut self, expression: &str, seconds: f64) -> bool {
+        let start = Instant::now();
+        while start.elapsed().as_secs_f64() < seconds {
+            if self.eval(expression) == json!(true) {
+                return true;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        false
+    }
+
+    /// Mean achieved forward speed over `seconds` of streamed frames.
+    fn mean_speed(&mut self, seconds: f64) -> f64 {
+        let start = Instant::now();
+        let mut speeds = Vec::new();
+        while start.elapsed().as_secs_f64() < seconds {
+            speeds.push(self.eval("play.frame.velocity[0]").as_f64().unwrap());
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        speeds.iter().sum::<f64>() / speeds.len() as f64
+    }
+}
+
+/// Headless Chromium on the page: the page renders, W and S change the command the server
+/// applies, and the humanoid's streamed speed follows.
+#[test]
+fn live_play_steers_from_a_real_browser() {
+    let Some(browser) = chromium() else {
+        eprintln!("SKIPPED: no Chromium here (`make test` installs Debian's `chromium`); the page was not driven");
+        return;
+    };
+    let dir = common::workdir("play-browser");
+    let (_server, host) = start_play(&dir);
+    let mut chrome = Command::new(browser)
+        .args(["--headless", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
+        .args(["--remote-debugging-port=0", "--window-size=1000,700", "--no-first-run"])
+        .arg(format!("--user-data-dir={}", dir.join("chrome").display()))
+        .arg(format!("http://{host}/"))
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(chrome.stderr.take().unwrap()).lines();
+    let _chrome = Killed(chrome);
+    let devtools = lines
+        .by_ref()
+        .map_while(Result::ok)
+        .find_map(|l| l.split_once("DevTools listening on ws://").map(|(_, rest)| rest.to_string()))
+        .expect("Chromium prints its DevTools address");
+    std::thread::spawn(move || lines.for_each(drop));
+    let port_host = devtools.split('/').next().unwrap().to_string();
+    let targets: Value = serde_json::from_str(&http_get(&port_host, "/json/list", &port_host).1).unwrap();
+    let target = targets.as_array().unwrap().iter().find(|t| t["type"] == "page").expect("a page");
+    let (socket, _) = tungstenite::connect(target["webSocketDebuggerUrl"].as_str().unwrap()).unwrap();
+    let mut page = Page { socket, id: 0 };
+    assert!(page.wait_for("window.play !== undefined && play.frames > 30", 30.0), "no frames reached the page");
+    assert!(page.eval("play.errors.length") == json!(0), "{}", page.eval("JSON.stringify(play.errors)"));
+
+    // The page draws: the screenshot holds the floor, the humanoid and the panels.
+    let shot = page.call("Page.captureScreenshot", json!({"format": "png"}));
+    let png = base64::engine::general_purpose::STANDARD.decode(shot["data"].as_str().unwrap()).unwrap();
+    std::fs::write(dir.join("play.png"), &png).unwrap();
+    let mut reader = png::Decoder::new(std::io::Cursor::new(png)).read_info().unwrap();
+    let mut pixels = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut pixels).unwrap();
+    let colours: std::collections::HashSet<&[u8]> = pixels[..info.buffer_size()].chunks(4).collect();
+    assert!(colours.len() > 500, "a blank page: {} colours", colours.len());
+
+    // W: the server applies forward, and the humanoid walks forward; S: backward.
+    page.key("keyDown", "KeyW", "w", 87);
+    assert!(page.wait_for("play.frame.command[0] === 1", 2.0), "W was not applied");
+    let w_latency = page.eval("play.latencyMs");
+    let forward = page.mean_speed(3.0);
+    page.key("keyUp", "KeyW", "w", 87);
+    page.key("keyDown", "KeyS", "s", 83);
+    assert!(page.wait_for("play.frame.command[0] === -0.6", 2.0), "S was not applied");
+    let s_latency = page.eval("play.latencyMs");
+    page.mean_speed(1.0);
+    let backward = page.mean_speed(3.0);
+    eprintln!(
+        "key -> applied: W {w_latency} ms, S {s_latency} ms; forward speed with W {forward:.2} m/s, with S {backward:.2} m/s"
+    );
+    assert!(forward > 0.5, "W: {forward:.2} m/s");
+    assert!(backward < forward - 0.3, "S did not slow the humanoid: {forward:.2} -> {backward:.2} m/s");
+    std::fs::remove_dir_all(&dir).ok();
+}

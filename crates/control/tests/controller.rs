@@ -1,0 +1,59 @@
+//! The stepping controller (what `flowmimic play` drives) does exactly what `run` records, and
+//! restarts, pushes and sampler changes behave, with the shipped model.
+
+use flowmimic_control::{ControlConfig, Controller, Task, run};
+use flowmimic_model::{Gradient, TrajectoryModel};
+use flowmimic_sim::{Humanoid, NUM_DOFS, SimConfig};
+use std::path::Path;
+
+#[test]
+fn the_controller_steps_as_run_records_and_restarts_and_pushes() {
+    let h = Humanoid::new(SimConfig::default()).unwrap();
+    let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models/fm"));
+    let model = TrajectoryModel::load(dir).unwrap();
+    let clip = flowmimic_motion::straight_walk(&h).unwrap();
+    let config = ControlConfig {
+        nfe: 2,
+        guidance_scale: 5.0,
+        gradient: Gradient::ThroughNetwork,
+        guidance_steps: None,
+        seconds: 0.5,
+        execute: 1,
+        paced: false,
+        seed: 3,
+        kick_every: 0.2,
+        kick_max: 0.3,
+    };
+    let tasks = vec![Task::joystick_eval(), Task::walk()];
+    let rollout = run(&model, &h, &clip, tasks.clone(), &config, "shipped", |_| {}).unwrap();
+    let mut controller = Controller::new(&model, &h, &clip, 2, &config).unwrap();
+    for k in 0..rollout.steps {
+        let outcome = controller.step(&tasks, k as f64 / 30.0).unwrap();
+        for (e, action) in outcome.actions.iter().enumerate() {
+            let recorded = &rollout.action[(e * rollout.steps + k) * NUM_DOFS..][..NUM_DOFS];
+            assert_eq!(action.as_deref(), Some(recorded), "environment {e}, step {k}");
+        }
+    }
+    assert_eq!(controller.steps(), rollout.steps);
+    assert!(controller.plan(0).is_some_and(|p| p.len() == flowmimic_control::Layout { horizon: 8 }.len()));
+
+    // A restart puts the environment back on the clip, with no plan; others are untouched.
+    let other = controller.env(0).qpos().to_vec();
+    controller.restart(1, &clip, 20).unwrap();
+    assert!(controller.plan(1).is_none() && controller.is_alive(1));
+    assert_eq!(controller.env(1).qpos(), clip.qpos[20].as_slice());
+    assert_eq!(controller.env(0).qpos(), other.as_slice());
+    assert!(controller.restart(1, &clip, 2).is_err(), "no room for the history before frame 2");
+    // A push adds to the root's planar velocity.
+    let before = controller.env(0).qvel()[..2].to_vec();
+    controller.kick(0, [0.4, -0.2]).unwrap();
+    let after = controller.env(0).qvel();
+    assert!((after[0] - before[0] - 0.4).abs() < 1e-9 && (after[1] - before[1] + 0.2).abs() < 1e-9);
+    // Sampler settings that cannot run are refused, and the old ones stay.
+    for bad in [ControlConfig { nfe: 0, ..config.clone() }, ControlConfig { guidance_scale: f32::NAN, ..config.clone() }] {
+        assert!(controller.set_config(bad).is_err());
+    }
+    assert_eq!(controller.config(), &config);
+    controller.set_config(ControlConfig { nfe: 1, ..config.clone() }).unwrap();
+    assert!(controller.step(&tasks, 1.0).is_ok());
+}

@@ -1,0 +1,415 @@
+//! The paper's experiments, each a sweep of a protocol over models and sampler points with its
+//! table, notes and the paper's numbers beside ours: what `flowmimic eval ...` runs, callable
+//! from a library ([`Study`] holds what every experiment shares).
+
+use crate::protocols::{self, Point};
+use crate::sweep::{EvalModel, Experiment, Result, Rows, finish, sweep};
+use crate::{frechet_distance, gaussian};
+use flowmimic_control::{Hand, JoystickSegment, StepReport, Task};
+use flowmimic_data::Dataset;
+use flowmimic_model::Gradient;
+use flowmimic_motion::Clip;
+use flowmimic_sim::{Humanoid, STATE_DIM};
+use std::path::Path;
+use std::sync::Arc;
+
+/// One protocol's trials, given where to report each control step.
+pub type Trials<'a> = dyn Fn(&dyn Fn(&StepReport)) -> Rows + 'a;
+
+/// Runs [`Trials`] lasting `steps` control steps: the caller's progress display wraps the work
+/// (a command line draws a bar; a library user may pass `&|_, trials| trials(&|_| {})`).
+pub type WithProgress<'a> = dyn Fn(usize, &Trials) -> Rows + 'a;
+
+/// What every experiment of one evaluation shares.
+pub struct Study<'a> {
+    pub models: &'a [EvalModel],
+    pub humanoid: &'a Arc<Humanoid>,
+    /// Trials start from frames of this clip.
+    pub clip: &'a Clip,
+    /// Where CSV, JSON, plots and `report.md` go.
+    pub out: &'a Path,
+    /// Few trials and short episodes.
+    pub quick: bool,
+    /// Trials per point, instead of the protocol's own count.
+    pub trials: Option<usize>,
+    pub seed: u64,
+    /// Actions executed per sampled trajectory.
+    pub execute: usize,
+    pub gradient: Gradient,
+    pub progress: &'a WithProgress<'a>,
+}
+
+/// `1.0` for true, so falls and successes average into rates.
+fn rate(b: bool) -> f64 {
+    f64::from(u8::from(b))
+}
+
+impl Study<'_> {
+    fn trials(&self, full: usize, quick: usize) -> usize {
+        self.trials.unwrap_or(if self.quick { quick } else { full }).max(1)
+    }
+
+    fn point(&self, nfe: usize, scale: f32) -> Point {
+        Point { nfe, scale, execute: self.execute, seed: self.seed, gradient: self.gradient }
+    }
+
+    fn by_nfe(&self, nfe: &[usize]) -> Vec<Point> {
+        nfe.iter().map(|&n| self.point(n, 0.0)).collect()
+    }
+
+    fn by_scale(&self, scales: &[f32], nfe: usize) -> Vec<Point> {
+        scales.iter().map(|&w| self.point(nfe, w)).collect()
+    }
+
+    /// What besides the model and the point determines an experiment's results (the start
+    /// clip, and `extra`): part of every stored trial's key.
+    fn settings(&self, extra: &str) -> String {
+        let clip = format!("clip {} {}", self.clip.name, self.clip.len());
+        if extra.is_empty() { clip } else { format!("{clip}; {extra}") }
+    }
+
+    /// Unguided walking under kicks against NFE (paper Fig. 2); `seconds` caps each episode
+    /// (default 1000 steps, quick 10 s).
+    pub fn survival(&self, nfe: &[usize], seconds: Option<f64>) -> Result<()> {
+        let settings = self.settings(&format!("seconds {seconds:?}; quick {}", self.quick));
+        let trials = self.trials(50, 8);
+        let seconds = seconds.unwrap_or(if self.quick { 10.0 } else { 1000.0 / flowmimic_sim::CONTROL_HZ });
+        let steps = (seconds * flowmimic_sim::CONTROL_HZ).round() as usize;
+        let exp = Experiment {
+            name: "survival",
+            settings,
+            title: "Survival against NFE (paper Fig. 2)",
+            columns: &["steps"],
+            plot: "steps",
+            x_label: "NFE",
+            y_label: "control steps survived",
+            header: "| model | objective | NFE | steps survived (mean ± std) | paper FM / DDPM |\n|---|---|---|---|---|",
+        };
+        let (summaries, table) = sweep(
+            &exp,
+            self.out,
+            self.models,
+            (&self.by_nfe(nfe), trials, true),
+            |m, point| {
+                (self.progress)(steps, &|report| {
+                    let survived =
+                        protocols::survival(&m.bench(self.humanoid, self.clip), point, trials, seconds, report)?;
+                    Ok(survived.iter().map(|&s| vec![s as f64]).collect())
+                })
+            },
+            |m, s| {
+                let paper = match s.nfe {
+                    1 => "280 / 30",
+                    5 => "820 / 280",
+                    20 => "≈470 / ≈470",
+                    _ => "",
+                };
+                format!(
+                    "| {} | {} | {} | {:.0} ± {:.0} | {paper} |",
+                    m.label, s.objective, s.nfe, s.mean["steps"], s.std["steps"]
+                )
+            },
+        )?;
+        let notes = format!(
+            "Unguided walking, a random planar root-velocity kick of uniform 0-0.5 m/s in a uniform direction every 1 s, \
+             failure when the head is below 0.2 m; {trials} trials per point, episode cap {seconds:.1} s ({steps} steps), seed {}.",
+            self.seed
+        );
+        finish(self.out, self.models, (exp.name, exp.title), &notes, &summaries, table)
+    }
+
+    /// Forward, backward, turn left and right, 3 s each, against guidance scale (paper Fig. 3).
+    pub fn joystick(&self, scales: &[f32], nfe: usize) -> Result<()> {
+        let trials = self.trials(10, 2);
+        let exp = Experiment {
+            name: "joystick",
+            settings: self.settings(""),
+            title: "Joystick tracking against guidance (paper Fig. 3)",
+            columns: &["velocity_rmse", "yaw_rate_rmse", "fell"],
+            plot: "velocity_rmse",
+            x_label: "guidance scale w",
+            y_label: "velocity RMSE (m/s)",
+            header: "| model | H | w | velocity RMSE (m/s) | yaw-rate RMSE (rad/s) | falls |\n|---|---|---|---|---|---|",
+        };
+        let (summaries, table) = sweep(
+            &exp,
+            self.out,
+            self.models,
+            (&self.by_scale(scales, nfe), trials, false),
+            |m, point| {
+                (self.progress)(360, &|report| {
+                    let r = protocols::joystick(&m.bench(self.humanoid, self.clip), point, trials, report)?;
+                    Ok(r.iter().map(|t| vec![t.velocity_rmse, t.yaw_rate_rmse, rate(t.fell)]).collect())
+                })
+            },
+            |m, s| {
+                format!(
+                    "| {} | {} | {} | {:.3} ± {:.3} | {:.3} | {:.0}% |",
+                    m.label,
+                    s.horizon,
+                    s.scale,
+                    s.mean["velocity_rmse"],
+                    s.std["velocity_rmse"],
+                    s.mean["yaw_rate_rmse"],
+                    100.0 * s.mean["fell"]
+                )
+            },
+        )?;
+        let notes = format!(
+            "Forward 1.0 m/s, backward 0.5 m/s, turn left and right (0.8 m/s at 0.6 rad/s), 3 s each; RMSE between commanded \
+             and achieved planar root velocity (character frame) over the steps before any fall; NFE {nfe}, {trials} trials. \
+             Paper: RMSE ≈ 0.55 at w = 40; 1.05 at H = 2 to 0.70 at H = 16."
+        );
+        finish(self.out, self.models, (exp.name, exp.title), &notes, &summaries, table)
+    }
+
+    /// Random right-hand targets while walking, against guidance scale (paper Fig. 4).
+    pub fn reach(&self, scales: &[f32], nfe: usize) -> Result<()> {
+        let trials = self.trials(20, 4);
+        let exp = Experiment {
+            name: "reach",
+            settings: self.settings(""),
+            title: "Hand reaching against guidance (paper Fig. 4)",
+            columns: &["mean", "rms", "min", "fell"],
+            plot: "mean",
+            x_label: "guidance scale w",
+            y_label: "hand-target distance (m)",
+            header: "| model | H | w | mean distance (m) | RMS (m) | closest (m) | falls |\n|---|---|---|---|---|---|---|",
+        };
+        let (summaries, table) = sweep(
+            &exp,
+            self.out,
+            self.models,
+            (&self.by_scale(scales, nfe), trials, false),
+            |m, point| {
+                (self.progress)(120, &|report| {
+                    let r = protocols::reach(&m.bench(self.humanoid, self.clip), point, trials, report)?;
+                    Ok(r.iter().map(|t| vec![t.mean, t.rms, t.min, rate(t.fell)]).collect())
+                })
+            },
+            |m, s| {
+                format!(
+                    "| {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.0}% |",
+                    m.label,
+                    s.horizon,
+                    s.scale,
+                    s.mean["mean"],
+                    s.mean["rms"],
+                    s.mean["min"],
+                    100.0 * s.mean["fell"]
+                )
+            },
+        )?;
+        let notes = format!(
+            "Right-hand targets 1.5-3 m ahead of each trial's start, within 0.5 m to either side, 0.9-1.5 m high; 4 s of guided \
+             walking; distance averaged over the trial (mean, RMS) and the closest approach; NFE {nfe}, {trials} trials. \
+             Paper: RMSE ≈ 1.1 at w = 100."
+        );
+        finish(self.out, self.models, (exp.name, exp.title), &notes, &summaries, table)
+    }
+
+    /// A waypoint and a hand target at once: success rate against guidance scale.
+    pub fn compose(&self, scales: &[f32], nfe: usize) -> Result<()> {
+        let trials = self.trials(20, 4);
+        let exp = Experiment {
+            name: "compose",
+            settings: self.settings(""),
+            title: "Composition: waypoint and reach",
+            columns: &["success", "pelvis_min", "hand_min", "fell"],
+            plot: "success",
+            x_label: "guidance scale w",
+            y_label: "success rate",
+            header: "| model | w | success | closest pelvis (m) | closest hand (m) | falls |\n|---|---|---|---|---|---|",
+        };
+        let (summaries, table) = sweep(
+            &exp,
+            self.out,
+            self.models,
+            (&self.by_scale(scales, nfe), trials, false),
+            |m, point| {
+                (self.progress)(300, &|report| {
+                    let r = protocols::compose(&m.bench(self.humanoid, self.clip), point, trials, report)?;
+                    Ok(r.iter().map(|t| vec![rate(t.success), t.pelvis_min, t.hand_min, rate(t.fell)]).collect())
+                })
+            },
+            |m, s| {
+                format!(
+                    "| {} | {} | {:.0}% | {:.2} | {:.2} | {:.0}% |",
+                    m.label,
+                    s.scale,
+                    100.0 * s.mean["success"],
+                    s.mean["pelvis_min"],
+                    s.mean["hand_min"],
+                    100.0 * s.mean["fell"]
+                )
+            },
+        )?;
+        let notes = format!(
+            "Waypoint 3-4 m ahead and up to 1.5 m aside; right-hand target 0.4 m right of it at 1.2 m; 10 s; success when the \
+             pelvis is within 0.5 m of the waypoint and the hand within 0.15 m of the target at the same step; NFE {nfe}, \
+             {trials} trials."
+        );
+        finish(self.out, self.models, (exp.name, exp.title), &notes, &summaries, table)
+    }
+
+    /// Fréchet distance of unguided generated walking to `dataset`'s states, against NFE.
+    pub fn quality(&self, dataset: &Path, nfe: &[usize]) -> Result<()> {
+        let trials = self.trials(16, 4);
+        let seconds = if self.quick { 4.0 } else { 10.0 };
+        let reference = dataset_features(dataset)?;
+        let (rm, rs) = gaussian(&reference);
+        // The floor: alternate 10 s blocks of the reference against each other.
+        let (even, odd): (Vec<_>, Vec<_>) = reference.iter().enumerate().partition(|(i, _)| (i / 300) % 2 == 0);
+        let half = |v: Vec<(usize, &Vec<f64>)>| gaussian(&v.into_iter().map(|(_, f)| f.clone()).collect::<Vec<_>>());
+        let ((am, a_s), (bm, bs)) = (half(even), half(odd));
+        let floor = frechet_distance(&am, &a_s, &bm, &bs);
+        let exp = Experiment {
+            name: "quality",
+            settings: self.settings(&format!("dataset {}; quick {}", Dataset::open(dataset)?.shards_key(), self.quick)),
+            title: "Motion quality (Fréchet distance to the data)",
+            columns: &["frechet"],
+            plot: "frechet",
+            x_label: "NFE",
+            y_label: "Fréchet distance",
+            header: "| model | NFE | Fréchet distance |\n|---|---|---|",
+        };
+        let steps = (seconds * flowmimic_sim::CONTROL_HZ) as usize;
+        let (summaries, table) = sweep(
+            &exp,
+            self.out,
+            self.models,
+            (&self.by_nfe(nfe), 1, true),
+            |m, point| {
+                (self.progress)(steps, &|report| {
+                    let f = protocols::generated_features(
+                        &m.bench(self.humanoid, self.clip),
+                        point,
+                        trials,
+                        seconds,
+                        report,
+                    )?;
+                    let (gm, gs) = gaussian(&f);
+                    Ok(vec![vec![frechet_distance(&gm, &gs, &rm, &rs)]])
+                })
+            },
+            |m, s| format!("| {} | {} | {:.4} |", m.label, s.nfe, s.mean["frechet"]),
+        )?;
+        let table = format!("{table}| reference against itself (floor) | – | {floor:.4} |\n");
+        let notes = format!(
+            "Features per control step: root height, root velocity (character frame), and head, hand and foot positions \
+             relative to the root (19 numbers); Gaussian fits of unguided generated walking ({trials} trials x {seconds} s, \
+             steps before any fall) against every state of `{}`; the floor compares alternate 10 s blocks of the data.",
+            dataset.display()
+        );
+        finish(self.out, self.models, (exp.name, exp.title), &notes, &summaries, table)
+    }
+
+    /// Time per control step (batch 1) against NFE; guided at scale `guided` if given.
+    pub fn latency(&self, nfe: &[usize], guided: Option<f32>) -> Result<()> {
+        let scale = guided.unwrap_or(0.0);
+        let points: Vec<Point> = nfe.iter().map(|&n| self.point(n, scale)).collect();
+        let exp = Experiment {
+            name: if guided.is_some() { "latency_guided" } else { "latency" },
+            settings: self.settings(""),
+            title: if guided.is_some() {
+                "Latency per guided control step (batch 1)"
+            } else {
+                "Latency per control step (batch 1)"
+            },
+            columns: &["model_ms", "physics_ms", "total_ms"],
+            plot: "total_ms",
+            x_label: "NFE",
+            y_label: "milliseconds",
+            header: "| model | objective | NFE | model ms | physics ms | control Hz |\n|---|---|---|---|---|---|",
+        };
+        let (summaries, table) = sweep(
+            &exp,
+            self.out,
+            self.models,
+            (&points, 1, true),
+            |m, point| {
+                let (model_ms, physics_ms) = protocols::latency(&m.bench(self.humanoid, self.clip), point, 3.0)?;
+                Ok(vec![vec![model_ms, physics_ms, model_ms + physics_ms]])
+            },
+            |m, s| {
+                format!(
+                    "| {} | {} | {} | {:.2} | {:.2} | {:.0} |",
+                    m.label,
+                    s.objective,
+                    s.nfe,
+                    s.mean["model_ms"],
+                    s.mean["physics_ms"],
+                    1e3 / s.mean["total_ms"]
+                )
+            },
+        )?;
+        let walking = match guided {
+            Some(w) => format!("walking guided at w = {w} on the joystick schedule ({:?} gradient)", self.gradient),
+            None => "unguided walking".into(),
+        };
+        let notes = format!(
+            "Median over 3 s of {walking} with one environment; model = one sampling call (all NFE steps), \
+             physics = one 30 Hz step. Paper: FM about 4x faster than DDPM for the same robustness (NFE 5 vs 20)."
+        );
+        finish(self.out, self.models, (exp.name, exp.title), &notes, &summaries, table)
+    }
+
+    /// How far guidance moves the executed action against the later predicted actions, and the
+    /// task's error, through the network and of the cost only (the model's output alone).
+    pub fn guidance(&self, scales: &[f32], nfe: usize, samples: usize) -> Result<()> {
+        let walk = |vx, yaw_rate| JoystickSegment { seconds: 1.0, vx, vy: 0.0, yaw_rate };
+        let tasks = [
+            ("backward -0.5 m/s", Task { joystick: vec![walk(-0.5, 0.0)], ..Task::walk() }),
+            ("turn left 0.6 rad/s", Task { joystick: vec![walk(0.8, 0.6)], ..Task::walk() }),
+            (
+                "right hand 0.5 m ahead, 1.3 m high",
+                Task { reach: Some((Hand::Right, [0.5, -0.3, 1.3])), ..Task::walk() },
+            ),
+        ];
+        println!(
+            "{:<10} {:<36} {:<16} {:>6} {:>10} {:>10} {:>7} {:>10} {:>10}",
+            "model", "task", "gradient", "w", "|da_t|", "|da_t+k|", "ratio", "error", "unguided"
+        );
+        let mut rows = Vec::new();
+        for m in self.models {
+            for (name, task) in &tasks {
+                for gradient in [Gradient::ThroughNetwork, Gradient::CostOnly] {
+                    for &scale in scales {
+                        let point = Point { nfe, scale, execute: 1, seed: 0, gradient };
+                        let e = protocols::guidance_effect(&m.bench(self.humanoid, self.clip), task, point, samples)?;
+                        let g = serde_json::to_string(&gradient)?;
+                        println!(
+                            "{:<10} {:<36} {:<16} {:>6} {:>10.4} {:>10.4} {:>7.2} {:>10.3} {:>10.3}",
+                            m.label,
+                            name,
+                            g.trim_matches('"'),
+                            scale,
+                            e.first_action,
+                            e.later_actions,
+                            e.first_action / e.later_actions.max(1e-12),
+                            e.error_guided,
+                            e.error_unguided
+                        );
+                        rows.push(serde_json::json!({"model": m.label, "task": name, "gradient": gradient, "scale": scale, "nfe": nfe, "samples": samples, "effect": e}));
+                    }
+                }
+            }
+        }
+        flowmimic_io::write_atomic(&self.out.join("guidance.json"), serde_json::to_string_pretty(&rows)?.as_bytes())?;
+        eprintln!("wrote {}", self.out.join("guidance.json").display());
+        Ok(())
+    }
+}
+
+/// Quality features of every state in a dataset.
+fn dataset_features(dir: &Path) -> Result<Vec<Vec<f64>>> {
+    let dataset = Dataset::open(dir)?;
+    let mut out = Vec::new();
+    for (_, shard) in dataset.load_all()? {
+        out.extend(shard.state.chunks_exact(STATE_DIM).map(protocols::quality_features));
+    }
+    if out.len() < 100 {
+        return Err(format!("{}: only {} states, too few for a reference", dir.display(), out.len()).into());
+    }
+    Ok(out)
+}
