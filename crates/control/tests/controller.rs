@@ -50,7 +50,9 @@ fn the_controller_steps_as_run_records_and_restarts_and_pushes() {
     let after = controller.env(0).qvel();
     assert!((after[0] - before[0] - 0.4).abs() < 1e-9 && (after[1] - before[1] + 0.2).abs() < 1e-9);
     // Sampler settings that cannot run are refused, and the old ones stay.
-    for bad in [ControlConfig { nfe: 0, ..config.clone() }, ControlConfig { guidance_scale: f32::NAN, ..config.clone() }] {
+    for bad in
+        [ControlConfig { nfe: 0, ..config.clone() }, ControlConfig { guidance_scale: f32::NAN, ..config.clone() }]
+    {
         assert!(controller.set_config(bad).is_err());
     }
     assert_eq!(controller.config(), &config);
