@@ -2,8 +2,8 @@
 //! table, notes and the paper's numbers beside ours: what `flowmimic eval ...` runs, callable
 //! from a library ([`Study`] holds what every experiment shares).
 
-use crate::protocols::{self, Point};
-use crate::sweep::{EvalModel, Experiment, Result, Rows, finish, sweep};
+use crate::protocols::{self, Bench, Point};
+use crate::sweep::{EvalModel, Experiment, Result, Rows, Summary, finish, sweep};
 use crate::{frechet_distance, gaussian};
 use flowmimic_control::{Hand, JoystickSegment, StepReport, Task};
 use flowmimic_data::Dataset;
@@ -66,6 +66,27 @@ impl Study<'_> {
     fn settings(&self, extra: &str) -> String {
         let clip = format!("clip {} {}", self.clip.name, self.clip.len());
         if extra.is_empty() { clip } else { format!("{clip}; {extra}") }
+    }
+
+    /// A guided protocol swept over guidance `scales` at `nfe`, `trials` trials a point lasting
+    /// `steps` control steps; `rows` runs a point's trials, `row` and `notes` write it down.
+    fn guided_sweep(
+        &self,
+        exp: &Experiment,
+        (scales, nfe, trials, steps): (&[f32], usize, usize, usize),
+        rows: impl Fn(&Bench, Point, &dyn Fn(&StepReport)) -> Rows,
+        row: impl Fn(&EvalModel, &Summary) -> String,
+        notes: &str,
+    ) -> Result<()> {
+        let (summaries, table) = sweep(
+            exp,
+            self.out,
+            self.models,
+            (&self.by_scale(scales, nfe), trials, false),
+            |m, point| (self.progress)(steps, &|report| rows(&m.bench(self.humanoid, self.clip), point, report)),
+            row,
+        )?;
+        finish(self.out, self.models, (exp.name, exp.title), notes, &summaries, table)
     }
 
     /// Unguided walking under kicks against NFE (paper Fig. 2); `seconds` caps each episode
@@ -131,16 +152,17 @@ impl Study<'_> {
             y_label: "velocity RMSE (m/s)",
             header: "| model | H | w | velocity RMSE (m/s) | yaw-rate RMSE (rad/s) | falls |\n|---|---|---|---|---|---|",
         };
-        let (summaries, table) = sweep(
+        let notes = format!(
+            "Forward 1.0 m/s, backward 0.5 m/s, turn left and right (0.8 m/s at 0.6 rad/s), 3 s each; RMSE between commanded \
+             and achieved planar root velocity (character frame) over the steps before any fall; NFE {nfe}, {trials} trials. \
+             Paper: RMSE ≈ 0.55 at w = 40; 1.05 at H = 2 to 0.70 at H = 16."
+        );
+        self.guided_sweep(
             &exp,
-            self.out,
-            self.models,
-            (&self.by_scale(scales, nfe), trials, false),
-            |m, point| {
-                (self.progress)(360, &|report| {
-                    let r = protocols::joystick(&m.bench(self.humanoid, self.clip), point, trials, report)?;
-                    Ok(r.iter().map(|t| vec![t.velocity_rmse, t.yaw_rate_rmse, rate(t.fell)]).collect())
-                })
+            (scales, nfe, trials, 360),
+            |bench, point, report| {
+                let r = protocols::joystick(bench, point, trials, report)?;
+                Ok(r.iter().map(|t| vec![t.velocity_rmse, t.yaw_rate_rmse, rate(t.fell)]).collect())
             },
             |m, s| {
                 format!(
@@ -154,13 +176,8 @@ impl Study<'_> {
                     100.0 * s.mean["fell"]
                 )
             },
-        )?;
-        let notes = format!(
-            "Forward 1.0 m/s, backward 0.5 m/s, turn left and right (0.8 m/s at 0.6 rad/s), 3 s each; RMSE between commanded \
-             and achieved planar root velocity (character frame) over the steps before any fall; NFE {nfe}, {trials} trials. \
-             Paper: RMSE ≈ 0.55 at w = 40; 1.05 at H = 2 to 0.70 at H = 16."
-        );
-        finish(self.out, self.models, (exp.name, exp.title), &notes, &summaries, table)
+            &notes,
+        )
     }
 
     /// Random right-hand targets while walking, against guidance scale (paper Fig. 4).
@@ -176,16 +193,17 @@ impl Study<'_> {
             y_label: "hand-target distance (m)",
             header: "| model | H | w | mean distance (m) | RMS (m) | closest (m) | falls |\n|---|---|---|---|---|---|---|",
         };
-        let (summaries, table) = sweep(
+        let notes = format!(
+            "Right-hand targets 1.5-3 m ahead of each trial's start, within 0.5 m to either side, 0.9-1.5 m high; 4 s of guided \
+             walking; distance averaged over the trial (mean, RMS) and the closest approach; NFE {nfe}, {trials} trials. \
+             Paper: RMSE ≈ 1.1 at w = 100."
+        );
+        self.guided_sweep(
             &exp,
-            self.out,
-            self.models,
-            (&self.by_scale(scales, nfe), trials, false),
-            |m, point| {
-                (self.progress)(120, &|report| {
-                    let r = protocols::reach(&m.bench(self.humanoid, self.clip), point, trials, report)?;
-                    Ok(r.iter().map(|t| vec![t.mean, t.rms, t.min, rate(t.fell)]).collect())
-                })
+            (scales, nfe, trials, 120),
+            |bench, point, report| {
+                let r = protocols::reach(bench, point, trials, report)?;
+                Ok(r.iter().map(|t| vec![t.mean, t.rms, t.min, rate(t.fell)]).collect())
             },
             |m, s| {
                 format!(
@@ -199,13 +217,8 @@ impl Study<'_> {
                     100.0 * s.mean["fell"]
                 )
             },
-        )?;
-        let notes = format!(
-            "Right-hand targets 1.5-3 m ahead of each trial's start, within 0.5 m to either side, 0.9-1.5 m high; 4 s of guided \
-             walking; distance averaged over the trial (mean, RMS) and the closest approach; NFE {nfe}, {trials} trials. \
-             Paper: RMSE ≈ 1.1 at w = 100."
-        );
-        finish(self.out, self.models, (exp.name, exp.title), &notes, &summaries, table)
+            &notes,
+        )
     }
 
     /// A waypoint and a hand target at once: success rate against guidance scale.
@@ -221,16 +234,17 @@ impl Study<'_> {
             y_label: "success rate",
             header: "| model | w | success | closest pelvis (m) | closest hand (m) | falls |\n|---|---|---|---|---|---|",
         };
-        let (summaries, table) = sweep(
+        let notes = format!(
+            "Waypoint 3-4 m ahead and up to 1.5 m aside; right-hand target 0.4 m right of it at 1.2 m; 10 s; success when the \
+             pelvis is within 0.5 m of the waypoint and the hand within 0.15 m of the target at the same step; NFE {nfe}, \
+             {trials} trials."
+        );
+        self.guided_sweep(
             &exp,
-            self.out,
-            self.models,
-            (&self.by_scale(scales, nfe), trials, false),
-            |m, point| {
-                (self.progress)(300, &|report| {
-                    let r = protocols::compose(&m.bench(self.humanoid, self.clip), point, trials, report)?;
-                    Ok(r.iter().map(|t| vec![rate(t.success), t.pelvis_min, t.hand_min, rate(t.fell)]).collect())
-                })
+            (scales, nfe, trials, 300),
+            |bench, point, report| {
+                let r = protocols::compose(bench, point, trials, report)?;
+                Ok(r.iter().map(|t| vec![rate(t.success), t.pelvis_min, t.hand_min, rate(t.fell)]).collect())
             },
             |m, s| {
                 format!(
@@ -243,13 +257,8 @@ impl Study<'_> {
                     100.0 * s.mean["fell"]
                 )
             },
-        )?;
-        let notes = format!(
-            "Waypoint 3-4 m ahead and up to 1.5 m aside; right-hand target 0.4 m right of it at 1.2 m; 10 s; success when the \
-             pelvis is within 0.5 m of the waypoint and the hand within 0.15 m of the target at the same step; NFE {nfe}, \
-             {trials} trials."
-        );
-        finish(self.out, self.models, (exp.name, exp.title), &notes, &summaries, table)
+            &notes,
+        )
     }
 
     /// Fréchet distance of unguided generated walking to `dataset`'s states, against NFE.
