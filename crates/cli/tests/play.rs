@@ -95,6 +95,12 @@ fn live_play_speaks_its_protocol_and_survives_bad_clients() {
     assert_eq!(hello["names"].as_array().unwrap().len(), 24, "{hello}");
     let frame = next_of(&mut socket, "frame");
     assert_eq!(frame["bodies"].as_array().unwrap().len(), 24, "{frame}");
+    // The loop's own budget with no browser on the cores (printed, not asserted).
+    let later = (0..60).map(|_| next_of(&mut socket, "frame")).last().unwrap();
+    eprintln!(
+        "model {} ms, physics {} ms, {} steps in the last second",
+        later["model_ms"], later["physics_ms"], later["rate"]
+    );
     // Malformed, unknown, out-of-range and oversized messages each get an error; frames go on.
     let oversized = format!("{{\"type\":\"push\",\"pad\":\"{}\"}}", "x".repeat(5000));
     for (message, why) in [
@@ -258,9 +264,11 @@ fn live_play_steers_from_a_real_browser() {
     let s_latency = page.eval("play.latencyMs");
     page.mean_speeds(1.0);
     let (backward, backward_plan) = page.mean_speeds(3.0);
+    let budget = page.eval("[play.frame.model_ms, play.frame.physics_ms, play.frame.rate]");
     eprintln!(
         "key -> applied: W {w_latency} ms, S {s_latency} ms; forward speed achieved / planned: \
-         W {forward:.2} / {forward_plan:.2} m/s, S {backward:.2} / {backward_plan:.2} m/s"
+         W {forward:.2} / {forward_plan:.2} m/s, S {backward:.2} / {backward_plan:.2} m/s; \
+         last step: model, physics ms, steps in the last second {budget}"
     );
     assert!(forward > 0.5, "W: {forward:.2} m/s");
     // With a model that steers, S would slow the humanoid and its plan; the shipped model does
