@@ -19,7 +19,7 @@ pub use controller::{ControlConfig, Controller, StepOutcome, StepReport, run, st
 pub use costs::{Cost, Heading, Joystick, Reach, Sum, Waypoint};
 pub use history::History;
 pub use layout::Layout;
-pub use rollout::{Rollout, RolloutInfo};
+pub use rollout::{Rollout, RolloutInfo, Row};
 pub use task::{Hand, JoystickSegment, Task};
 
 #[derive(Debug, thiserror::Error)]

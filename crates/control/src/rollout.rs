@@ -48,6 +48,25 @@ pub struct RolloutInfo {
     pub kick_max: f64,
 }
 
+/// One environment's record of one step, as a rollout stores it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Row {
+    pub qpos: Vec<f32>,
+    pub state: [f32; STATE_DIM],
+    /// World positions of the 24 bodies, flat.
+    pub body_pos: Vec<f32>,
+}
+
+impl Row {
+    pub fn of(env: &Env) -> Self {
+        Self {
+            qpos: env.qpos().iter().map(|&q| q as f32).collect(),
+            state: env.state(),
+            body_pos: env.bodies().pos.iter().flat_map(|p| [p.x as f32, p.y as f32, p.z as f32]).collect(),
+        }
+    }
+}
+
 #[derive(Clone, Debug, PartialEq)]
 pub struct Rollout {
     pub info: RolloutInfo,
@@ -86,15 +105,15 @@ impl Rollout {
 
     /// Writes row `k` (0..=T) of environment `e` from the simulator.
     pub fn record(&mut self, e: usize, k: usize, env: &Env) {
+        self.put_row(e, k, &Row::of(env));
+    }
+
+    /// Writes row `k` (0..=T) of environment `e`.
+    pub fn put_row(&mut self, e: usize, k: usize, row: &Row) {
         let at = e * (self.steps + 1) + k;
-        self.state[at * STATE_DIM..(at + 1) * STATE_DIM].copy_from_slice(&env.state());
-        for (o, q) in self.qpos[at * self.nq..(at + 1) * self.nq].iter_mut().zip(env.qpos()) {
-            *o = *q as f32;
-        }
-        let b = &mut self.body_pos[at * NUM_BODIES * 3..(at + 1) * NUM_BODIES * 3];
-        for (o, p) in b.chunks_exact_mut(3).zip(&env.bodies().pos) {
-            o.copy_from_slice(&[p.x as f32, p.y as f32, p.z as f32]);
-        }
+        self.state[at * STATE_DIM..(at + 1) * STATE_DIM].copy_from_slice(&row.state);
+        self.qpos[at * self.nq..(at + 1) * self.nq].copy_from_slice(&row.qpos);
+        self.body_pos[at * NUM_BODIES * 3..(at + 1) * NUM_BODIES * 3].copy_from_slice(&row.body_pos);
     }
 
     /// Writes the action executed and the command in force at step `k` (0..T) of environment `e`.

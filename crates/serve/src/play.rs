@@ -30,7 +30,7 @@ use axum::extract::ws::{Message, WebSocket, WebSocketUpgrade};
 use axum::response::{Html, Response};
 use axum::routing::get;
 use flowmimic_control::controller::start_frame;
-use flowmimic_control::{ControlConfig, Controller, Hand, JoystickSegment, Layout, Rollout, RolloutInfo, Task};
+use flowmimic_control::{ControlConfig, Controller, Hand, JoystickSegment, Layout, Rollout, RolloutInfo, Row, Task};
 use flowmimic_geom::{CharFrame, DVec3, heading, wrap_angle};
 use flowmimic_model::TrajectoryModel;
 use flowmimic_motion::Clip;
@@ -326,7 +326,7 @@ struct Simulation<'m> {
 struct Recording {
     started: SystemTime,
     task: Task,
-    rows: Vec<(Vec<f32>, [f32; flowmimic_sim::STATE_DIM], Vec<f32>)>,
+    rows: Vec<Row>,
     actions: Vec<(Vec<f32>, [f32; flowmimic_control::task::COMMAND_DIM])>,
     model_ms: Vec<f32>,
     physics_ms: Vec<f32>,
@@ -382,7 +382,7 @@ impl Simulation<'_> {
                         recording = Some(Recording {
                             started: SystemTime::now(),
                             task: inputs.task(),
-                            rows: vec![row(controller.env(0))],
+                            rows: vec![Row::of(controller.env(0))],
                             actions: Vec::new(),
                             model_ms: Vec::new(),
                             physics_ms: Vec::new(),
@@ -400,7 +400,7 @@ impl Simulation<'_> {
                         (model_ms, physics_ms) = (outcome.model_ms, outcome.physics_ms);
                         if let (Some(r), Some(a)) = (recording.as_mut(), &outcome.actions[0]) {
                             r.actions.push((a.clone(), task.command(time)));
-                            r.rows.push(row(controller.env(0)));
+                            r.rows.push(Row::of(controller.env(0)));
                             r.model_ms.push(model_ms);
                             r.physics_ms.push(physics_ms);
                         }
@@ -490,11 +490,8 @@ impl Simulation<'_> {
             kick_max: 0.0,
         };
         let mut rollout = Rollout::new(info, 1, steps, self.humanoid.nq());
-        let nq = rollout.nq;
-        for (k, (qpos, state, bodies)) in r.rows.iter().enumerate() {
-            rollout.qpos[k * nq..(k + 1) * nq].copy_from_slice(qpos);
-            rollout.state[k * state.len()..(k + 1) * state.len()].copy_from_slice(state);
-            rollout.body_pos[k * bodies.len()..(k + 1) * bodies.len()].copy_from_slice(bodies);
+        for (k, row) in r.rows.iter().enumerate() {
+            rollout.put_row(0, k, row);
         }
         for (k, (action, command)) in r.actions.iter().enumerate() {
             rollout.record_action(0, k, action, command);
@@ -510,12 +507,6 @@ impl Simulation<'_> {
             Err(e) => format!("recording not written: {}: {e}", path.display()),
         });
     }
-}
-
-/// One environment row of a rollout: qpos, state, body positions.
-fn row(env: &flowmimic_sim::Env) -> (Vec<f32>, [f32; flowmimic_sim::STATE_DIM], Vec<f32>) {
-    let bodies = env.bodies().pos.iter().flat_map(|p| [p.x as f32, p.y as f32, p.z as f32]).collect();
-    (env.qpos().iter().map(|&q| q as f32).collect(), env.state(), bodies)
 }
 
 #[cfg(test)]
