@@ -272,8 +272,8 @@ fn live_play_steers_from_a_real_browser() {
     );
     assert!(forward > 0.5, "W: {forward:.2} m/s");
     // With a model that steers, S would slow the humanoid and its plan; the shipped model does
-    // neither yet (README, Known limits: 0.99 -> 1.04 m/s achieved, 0.82 -> 0.70 planned, at
-    // w 30), so the speeds are printed, not asserted. R restarts the episode.
+    // neither yet (README, Live play: about 1.0 m/s achieved either way, the plan 0.9 -> 0.75),
+    // so the speeds are printed, not asserted. R restarts the episode.
     let before = page.eval("play.frame.time").as_f64().unwrap();
     page.key("keyDown", "KeyR", "r", 82);
     assert!(page.wait_for(&format!("play.frame.time < {before} - 1"), 2.0), "R did not reset");
