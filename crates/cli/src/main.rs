@@ -94,7 +94,8 @@ enum Command {
         /// Dataset directory (`flowmimic collect` writes it).
         #[arg(default_value = "runs/data")]
         dataset: PathBuf,
-        /// Generative objective: fm (Flow Matching) or ddpm.
+        /// Generative objective: fm (Flow Matching), meanflow (one-step capable: average velocity
+        /// over an interval) or ddpm.
         #[arg(long, default_value = "fm")]
         objective: String,
         /// Model directory; default runs/model/<objective>.

@@ -33,6 +33,15 @@ pub fn train(
         cfg.steps = s;
     }
     let objective = cfg.objective(objective)?;
+    if !model.time_features.is_multiple_of(2 * objective.times()) {
+        bail!(
+            "model.time_features ({}) must be a multiple of {} for {} (its network takes {} times)",
+            model.time_features,
+            2 * objective.times(),
+            objective.name(),
+            objective.times()
+        );
+    }
     if !resume && out.join(CHECKPOINT_FILE).exists() {
         bail!("{} exists: pass --resume to continue it, or choose another --out", out.join(CHECKPOINT_FILE).display());
     }

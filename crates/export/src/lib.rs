@@ -192,9 +192,12 @@ impl Graph {
 
 /// The trajectory model's denoiser as an ONNX graph (see the crate's documentation).
 pub fn trajectory_model(model: &TrajectoryModel) -> Result<Vec<u8>, ExportError> {
-    // The network is the same for every objective today; a new objective must decide here.
+    // The graph takes one noise level per sample; MeanFlow's network takes two.
     match model.objective {
         Objective::Fm { .. } | Objective::Ddpm { .. } => {}
+        Objective::MeanFlow { .. } => {
+            return Err(ExportError::Unsupported("MeanFlow models (two times per sample) do not export yet".into()));
+        }
     }
     let layout = model.layout();
     let net = &model.net.net;
@@ -219,8 +222,13 @@ pub fn trajectory_model(model: &TrajectoryModel) -> Result<Vec<u8>, ExportError>
         let beta = g.floats("beta", &[d], param(&format!("{name}.beta"))?);
         Ok(g.node("LayerNormalization", &[x, &gamma, &beta], vec![int("axis", -1), float("epsilon", 1e-5)]))
     };
-    // Tokens: concat(cond, x) cut into `tokens` rows.
-    let joined = g.node("Concat", &[&cond, &x], vec![int("axis", 1)]);
+    // Tokens: concat(cond, x), padded with zeros as the pairing asks, cut into `tokens` rows.
+    let (before, after) = model.net.padding();
+    let mut joined = g.node("Concat", &[&cond, &x], vec![int("axis", 1)]);
+    if before + after > 0 {
+        let pads = g.int64s(&[0, before as i64, 0, after as i64]);
+        joined = g.op("Pad", &[&joined, &pads]);
+    }
     let input = g.reshape(&joined, &[-1, tokens, token_dim as i64]);
     let mut h = linear(&mut g, &input, "input", token_dim)?;
     // Time(t) = sinusoids(1000 t) W_t, features [sin a_0, cos a_0, sin a_1, ...].
@@ -280,8 +288,9 @@ pub fn trajectory_model(model: &TrajectoryModel) -> Result<Vec<u8>, ExportError>
     }
     let last = layer_norm(&mut g, &h, "ln_out")?;
     let out = linear(&mut g, &last, "output", d)?;
-    let flat = g.reshape(&out, &[-1, window as i64]);
-    let (starts, ends, axes) = (g.int64s(&[cond_len as i64]), g.int64s(&[window as i64]), g.int64s(&[1]));
+    let flat = g.reshape(&out, &[-1, (before + window + after) as i64]);
+    let start = before + cond_len;
+    let (starts, ends, axes) = (g.int64s(&[start as i64]), g.int64s(&[(start + future_len) as i64]), g.int64s(&[1]));
     let future = g.op("Slice", &[&flat, &starts, &ends, &axes]);
     g.output(&future, "y", &[None, Some(future_len)]);
     let json = |v: serde_json::Result<String>| v.map_err(|e| ExportError::Encode(e.to_string()));

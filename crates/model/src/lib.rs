@@ -5,6 +5,8 @@
 //!   to a prediction (the Transformer over trajectory tokens, or a small MLP in tests);
 //! - [`fm`]: Flow Matching on the linear path `x_s = (1 - s) x_0 + s x_1` from noise (s = 0)
 //!   to data (s = 1), velocity regression, Euler and Heun solvers at any NFE;
+//! - [`meanflow`]: MeanFlow on the same path, regressing the average velocity over an interval,
+//!   so that one network evaluation can jump from noise to data (NFE 1);
 //! - [`ddpm`]: the DDPM baseline (epsilon prediction, cosine schedule), respaced to any NFE in
 //!   closed form, ancestral sampling;
 //! - [`Guidance`]: the gradient of a cost of the predicted clean sample `x_hat(x)` with respect
@@ -22,16 +24,17 @@
 
 pub mod ddpm;
 pub mod fm;
+pub mod meanflow;
 pub mod train;
 pub mod trajectory;
 
 pub use train::{ModelError, TrainConfig, Trainer, WindowSet};
-pub use trajectory::{ModelConfig, Objective, TaskGuidance, TokenLayout, TrajectoryModel};
+pub use trajectory::{ModelConfig, Objective, Pairing, TaskGuidance, TokenLayout, TrajectoryModel};
 
 use std::ops::Range;
 
-/// A denoising network: predicts from `x` (n x dim), noise levels `t` (n, in [0, 1]) and
-/// conditioning `cond` (n x cond_dim).
+/// A denoising network: predicts from `x` (n x dim), noise levels `t` (n, in [0, 1]; n x 2 for
+/// MeanFlow's interval start and length) and conditioning `cond` (n x cond_dim).
 pub trait Network {
     fn dim(&self) -> usize;
     fn predict(&self, x: &[f32], t: &[f32], cond: &[f32], n: usize) -> Vec<f32>;
@@ -56,6 +59,10 @@ pub enum Gradient {
     ThroughNetwork,
     /// `grad G(x_hat)`: the cost's gradient alone, as if `x_hat` were `x`.
     CostOnly,
+    /// Through the network, then the actions are sampled again with the guided states held
+    /// fixed along the path (inpainting by replacement): the model's own coupling of states and
+    /// actions serves as inverse dynamics for the guided plan. Twice the network evaluations.
+    Inpaint,
 }
 
 /// Test-time guidance: `grad` returns the gradient of the task cost at the predicted clean
@@ -91,7 +98,7 @@ pub(crate) fn guided_prediction(
             let grad = (g.grad)(&x_hat(&y), n);
             (y, grad)
         }
-        Gradient::ThroughNetwork => {
+        Gradient::ThroughNetwork | Gradient::Inpaint => {
             // grad_x G = a grad G + (dy/dx)^T (b grad G), with grad G at x_hat(y).
             let mut at_x_hat = Vec::new();
             let (y, pulled) = net.predict_pullback(x, t, cond, n, &mut |y| {

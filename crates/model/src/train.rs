@@ -12,7 +12,7 @@
 //! training batch's noise and target differ.
 
 use crate::trajectory::{Normaliser, Objective, TokenLayout, TrajectoryModel};
-use crate::{ModelConfig, TrainingBatch, ddpm, fm};
+use crate::{ModelConfig, TrainingBatch, ddpm, fm, meanflow};
 use flowmimic_data::{DataError, Dataset, Shard, Stats, window, window_starts};
 use flowmimic_io::tensors::{self, TensorError, TensorFile};
 use flowmimic_nn::Adam;
@@ -48,6 +48,8 @@ pub struct TrainConfig {
     pub fm_time: fm::TimeDistribution,
     /// Flow Matching's ODE solver.
     pub fm_solver: fm::Solver,
+    /// MeanFlow's share of training samples with an interval (the rest regress FM's velocity).
+    pub meanflow_share: f32,
     /// DDPM's training steps T.
     pub ddpm_steps: usize,
     /// What DDPM's network predicts: `sample` (x_0) or `epsilon`.
@@ -74,6 +76,7 @@ impl Default for TrainConfig {
             grad_clip: 1.0,
             fm_time: fm::TimeDistribution::Uniform,
             fm_solver: fm::Solver::Euler,
+            meanflow_share: 0.5,
             ddpm_steps: 100,
             ddpm_prediction: ddpm::Prediction::Sample,
             ddpm_clip: 6.0,
@@ -98,17 +101,20 @@ impl TrainConfig {
         if !(0.0..1.0).contains(&self.validation_fraction) {
             return Err(format!("train.validation_fraction is {}; it must be in [0, 1)", self.validation_fraction));
         }
-        self.objective("ddpm").and_then(|o| o.validate().map_err(ModelError::Invalid)).map_err(|e| e.to_string())?;
-        self.objective("fm").and_then(|o| o.validate().map_err(ModelError::Invalid)).map_err(|e| e.to_string())
+        for name in ["fm", "meanflow", "ddpm"] {
+            self.objective(name).and_then(|o| o.validate().map_err(ModelError::Invalid)).map_err(|e| e.to_string())?;
+        }
+        Ok(())
     }
 
     pub fn objective(&self, name: &str) -> Result<Objective, ModelError> {
         match name {
             "fm" => Ok(Objective::Fm { time: self.fm_time, solver: self.fm_solver }),
+            "meanflow" => Ok(Objective::MeanFlow { share: self.meanflow_share }),
             "ddpm" => {
                 Ok(Objective::Ddpm { steps: self.ddpm_steps, prediction: self.ddpm_prediction, clip: self.ddpm_clip })
             }
-            other => Err(ModelError::Invalid(format!("unknown objective '{other}'; choose fm or ddpm"))),
+            other => Err(ModelError::Invalid(format!("unknown objective '{other}'; choose fm, meanflow or ddpm"))),
         }
     }
 }
@@ -215,8 +221,13 @@ struct ModelMeta {
 impl ModelMeta {
     /// The metadata of a model or checkpoint file, every value checked.
     fn read(file: &TensorFile) -> Result<Self, ModelError> {
-        let meta: ModelMeta =
-            serde_json::from_str(file.meta("model")?).map_err(|e| file.error(format!("metadata 'model': {e}")))?;
+        let bad = |e: serde_json::Error| file.error(format!("metadata 'model': {e}"));
+        let mut json: serde_json::Value = serde_json::from_str(file.meta("model")?).map_err(bad)?;
+        // Models written before the pairing was a choice paired each state with its action.
+        if let Some(config) = json.get_mut("config").and_then(|c| c.as_object_mut()) {
+            config.entry("pairing").or_insert_with(|| "state-action".into());
+        }
+        let meta: ModelMeta = serde_json::from_value(json).map_err(bad)?;
         meta.config.validate().and_then(|()| meta.objective.validate()).map_err(|e| file.error(e))?;
         let expected = TokenLayout { spec: meta.config.spec(), ..meta.layout };
         let sizes = (1..=4096).contains(&meta.layout.state_dim) && (1..=4096).contains(&meta.layout.action_dim);
@@ -291,10 +302,11 @@ impl Trainer {
         (cond, future)
     }
 
-    fn training_batch(&self, clean: &[f32], rng: &mut StdRng) -> TrainingBatch {
+    fn training_batch(&self, clean: &[f32], cond: &[f32], rng: &mut StdRng) -> TrainingBatch {
         let dim = self.model.layout().future_len();
         match self.model.objective {
             Objective::Fm { time, .. } => fm::training_batch(clean, dim, time, rng),
+            Objective::MeanFlow { share } => meanflow::training_batch(&self.model.net, cond, clean, dim, share, rng),
             Objective::Ddpm { steps, prediction, .. } => {
                 ddpm::training_batch(&ddpm::Schedule::cosine(steps), prediction, clean, dim, rng)
             }
@@ -306,22 +318,16 @@ impl Trainer {
     fn loss(&self, side: &[(usize, usize)], rows: &[usize], rng: &mut StdRng, grads: bool) -> (f32, Option<Vec<f32>>) {
         let net = &self.model.net;
         let (cond, clean) = self.split(&self.data.windows(side, rows));
-        let batch = self.training_batch(&clean, rng);
+        let batch = self.training_batch(&clean, &cond, rng);
         let n = rows.len();
-        let tape = net.net.forward(&net.tokens(&batch.x, &cond, n), &batch.t, n);
+        let tape = net.forward(&batch.x, &batch.t, &cond, n);
         let pred = net.future(&tape.output);
         let count = pred.len() as f32;
         let loss = pred.iter().zip(&batch.target).map(|(p, t)| (p - t) * (p - t)).sum::<f32>() / count;
         let grads = grads.then(|| {
-            // d loss / d output: zero on the conditioning tokens' entries.
-            let (w, c, f) = (net.layout.window_len(), net.layout.cond_len(), net.layout.future_len());
-            let mut d = vec![0.0; n * w];
-            for i in 0..n {
-                for j in 0..f {
-                    let k = i * f + j;
-                    d[i * w + c + j] = 2.0 * (pred[k] - batch.target[k]) / count;
-                }
-            }
+            // d loss / d output: zero on the conditioning tokens' entries and the padding.
+            let d_future: Vec<f32> = pred.iter().zip(&batch.target).map(|(p, t)| 2.0 * (p - t) / count).collect();
+            let d = net.tokens(&d_future, &vec![0.0; cond.len()], n);
             let mut g = vec![0.0; net.net.num_params()];
             net.net.backward(&tape, &d, &mut g);
             g

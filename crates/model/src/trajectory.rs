@@ -9,7 +9,7 @@
 //! position has its own learned embedding. The loss and the sampler only look at `tau_t`.
 
 use crate::fm::{self, Solver};
-use crate::{Gradient, Guidance, Network, ddpm};
+use crate::{Gradient, Guidance, Network, ddpm, meanflow};
 use flowmimic_data::{Stats, WindowSpec};
 use flowmimic_nn::{Transformer, TransformerConfig};
 use rand::rngs::StdRng;
@@ -75,12 +75,47 @@ pub struct ModelConfig {
     pub layers: usize,
     pub d_ff: usize,
     pub time_features: usize,
+    /// Which state an action shares its token with.
+    pub pairing: Pairing,
+}
+
+/// How a window's states and actions are cut into tokens.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Pairing {
+    /// Token k is `[s_k, a_k]`: the executed action `a_t` sits in the token of the clean
+    /// current state, and reaches the future only by attention.
+    #[default]
+    StateAction,
+    /// Token k is `[a_{k-1}, s_k]` (padded with zeros at both ends): an action shares its token
+    /// with the state it leads to, so a guided `s_{t+1}` is in the same token as `a_t`, and no
+    /// token mixes clean and noisy entries.
+    ActionState,
+}
+
+impl Pairing {
+    /// Zeros before and after the window: (action_dim, state_dim) for action-state tokens.
+    fn padding(self, layout: &TokenLayout) -> (usize, usize) {
+        match self {
+            Pairing::StateAction => (0, 0),
+            Pairing::ActionState => (layout.action_dim, layout.state_dim),
+        }
+    }
 }
 
 impl Default for ModelConfig {
     /// The `cpu` preset: about 0.8 M parameters.
     fn default() -> Self {
-        Self { history: 4, horizon: 8, d_model: 128, heads: 4, layers: 4, d_ff: 512, time_features: 64 }
+        Self {
+            history: 4,
+            horizon: 8,
+            d_model: 128,
+            heads: 4,
+            layers: 4,
+            d_ff: 512,
+            time_features: 64,
+            pairing: Pairing::default(),
+        }
     }
 }
 
@@ -113,7 +148,7 @@ impl ModelConfig {
     pub fn transformer(&self, layout: &TokenLayout) -> TransformerConfig {
         TransformerConfig {
             token_dim: layout.token_dim(),
-            tokens: layout.tokens(),
+            tokens: layout.tokens() + usize::from(self.pairing == Pairing::ActionState),
             d_model: self.d_model,
             heads: self.heads,
             layers: self.layers,
@@ -129,6 +164,9 @@ impl ModelConfig {
 pub enum Objective {
     /// Flow Matching: velocity regression, Euler ODE sampler (or Heun).
     Fm { time: fm::TimeDistribution, solver: Solver },
+    /// MeanFlow: average velocity over an interval, regressed on a share `share` of samples
+    /// with an interval (the rest plain FM), sampled in NFE equal jumps.
+    MeanFlow { share: f32 },
     /// DDPM on a cosine schedule of `steps` predicting `prediction`, ancestral sampling
     /// respaced to the NFE; clean predictions clipped to `clip` standard deviations.
     Ddpm {
@@ -154,6 +192,9 @@ impl Objective {
             {
                 Err(format!("DDPM needs 1-100000 steps and a positive clip, not {steps} and {clip}"))
             }
+            Objective::MeanFlow { share } if !(0.0..=1.0).contains(&share) => {
+                Err(format!("MeanFlow's share of intervals must be in [0, 1], not {share}"))
+            }
             _ => Ok(()),
         }
     }
@@ -161,7 +202,16 @@ impl Objective {
     pub fn name(&self) -> &'static str {
         match self {
             Objective::Fm { .. } => "fm",
+            Objective::MeanFlow { .. } => "meanflow",
             Objective::Ddpm { .. } => "ddpm",
+        }
+    }
+
+    /// Noise levels the network takes per sample.
+    pub fn times(&self) -> usize {
+        match self {
+            Objective::MeanFlow { .. } => 2,
+            _ => 1,
         }
     }
 }
@@ -203,23 +253,53 @@ impl Normaliser {
 #[derive(Clone, Debug)]
 pub struct TrajectoryNet {
     pub layout: TokenLayout,
+    pub pairing: Pairing,
     pub net: Transformer,
 }
 
 impl TrajectoryNet {
-    /// Tokens `concat(cond_i, x_i)` for each sample.
+    /// Tokens `concat(cond_i, x_i)` for each sample, padded as the pairing asks.
     pub fn tokens(&self, x: &[f32], cond: &[f32], n: usize) -> Vec<f32> {
         let (c, f) = (self.layout.cond_len(), self.layout.future_len());
+        let (before, after) = self.padding();
         assert_eq!(x.len(), n * f, "future has the wrong length");
         assert_eq!(cond.len(), n * c, "conditioning has the wrong length");
-        (0..n).flat_map(|i| cond[i * c..(i + 1) * c].iter().chain(&x[i * f..(i + 1) * f]).copied()).collect()
+        let mut out = Vec::with_capacity(n * (before + c + f + after));
+        for i in 0..n {
+            out.extend(std::iter::repeat_n(0.0, before));
+            out.extend_from_slice(&cond[i * c..(i + 1) * c]);
+            out.extend_from_slice(&x[i * f..(i + 1) * f]);
+            out.extend(std::iter::repeat_n(0.0, after));
+        }
+        out
+    }
+
+    /// The Transformer's forward pass over `concat(cond, x)`, kept for a backward pass.
+    pub fn forward(&self, x: &[f32], t: &[f32], cond: &[f32], n: usize) -> flowmimic_nn::transformer::Tape {
+        self.net.forward(&self.tokens(x, cond, n), &network_times(t, n), n)
+    }
+
+    /// Zeros the tokens add before and after a window.
+    pub fn padding(&self) -> (usize, usize) {
+        self.pairing.padding(&self.layout)
     }
 
     /// The future part of each sample's output tokens.
     pub fn future(&self, output: &[f32]) -> Vec<f32> {
-        let (w, c) = (self.layout.window_len(), self.layout.cond_len());
-        output.chunks_exact(w).flat_map(|row| row[c..].iter().copied()).collect()
+        let (w, c, f) = (self.layout.window_len(), self.layout.cond_len(), self.layout.future_len());
+        let (before, after) = self.padding();
+        let start = before + c;
+        output.chunks_exact(before + w + after).flat_map(|row| row[start..start + f].iter().copied()).collect()
     }
+}
+
+/// Noise levels as the Transformer takes them. Its time features are sinusoids of `1000 t`, up
+/// to 1000 rad per unit of time; MeanFlow's target differentiates the network along the path,
+/// and at that rate the derivative of an untrained network is of order 1000 and training
+/// diverges (measured with the `tiny` preset: loss 429 -> 3,211 in 200 steps). So a network of
+/// two times (MeanFlow's) takes them in hundredths, at most 10 rad per unit (loss 1.95 -> 1.75).
+fn network_times(t: &[f32], n: usize) -> std::borrow::Cow<'_, [f32]> {
+    if t.len() == 2 * n { t.iter().map(|t| 0.01 * t).collect::<Vec<f32>>().into() } else { t.into() }
 }
 
 impl Network for TrajectoryNet {
@@ -228,7 +308,7 @@ impl Network for TrajectoryNet {
     }
 
     fn predict(&self, x: &[f32], t: &[f32], cond: &[f32], n: usize) -> Vec<f32> {
-        self.future(&self.net.predict(&self.tokens(x, cond, n), t, n))
+        self.future(&self.net.predict(&self.tokens(x, cond, n), &network_times(t, n), n))
     }
 
     fn predict_pullback(
@@ -239,7 +319,7 @@ impl Network for TrajectoryNet {
         n: usize,
         cotangent: &mut dyn FnMut(&[f32]) -> Vec<f32>,
     ) -> (Vec<f32>, Vec<f32>) {
-        let tape = self.net.forward(&self.tokens(x, cond, n), t, n);
+        let tape = self.forward(x, t, cond, n);
         let y = self.future(&tape.output);
         let u = cotangent(&y);
         // The cotangent covers the future tokens; the conditioning's outputs are not used.
@@ -273,7 +353,7 @@ impl TrajectoryModel {
     pub fn new(layout: TokenLayout, config: ModelConfig, objective: Objective, stats: Stats, seed: u64) -> Self {
         let net = Transformer::new(config.transformer(&layout), &mut StdRng::seed_from_u64(seed));
         let norm = Normaliser::new(&layout, &stats);
-        Self { config, objective, net: TrajectoryNet { layout, net }, stats, norm }
+        Self { config, objective, net: TrajectoryNet { layout, pairing: config.pairing, net }, stats, norm }
     }
 
     pub fn layout(&self) -> &TokenLayout {
@@ -310,13 +390,32 @@ impl TrajectoryModel {
         let noise: Vec<f32> = (0..n * f).map(|_| StandardNormal.sample(rng)).collect();
         let mut x = match self.objective {
             Objective::Fm { solver, .. } => fm::sample(&self.net, &cond, noise, n, nfe, solver, inner.as_ref()),
+            Objective::MeanFlow { .. } => meanflow::sample(&self.net, &cond, noise, n, nfe, inner.as_ref()),
             Objective::Ddpm { steps, prediction, clip } => {
                 let schedule = ddpm::Schedule::cosine(steps);
                 ddpm::sample(&self.net, &schedule, prediction, &cond, noise, n, nfe, clip, inner.as_ref(), rng)
             }
         };
+        if let (Some(g), Objective::Fm { .. }) = (guidance, self.objective)
+            && g.gradient == Gradient::Inpaint
+            && g.weight != 0.0
+        {
+            let mask = self.state_mask();
+            let noise: Vec<f32> = (0..n * f).map(|_| StandardNormal.sample(rng)).collect();
+            x = fm::sample_inpainted(&self.net, &cond, noise, n, nfe, &x, &mask);
+        }
         self.norm.denormalise(&mut x, c, f);
         x
+    }
+
+    /// True at the state entries of a future `[a_t, s_{t+1}, a_{t+1}, ...]`.
+    fn state_mask(&self) -> Vec<bool> {
+        let (sd, ad) = (self.layout().state_dim, self.layout().action_dim);
+        let mut mask = vec![false; ad];
+        for _ in 0..self.layout().spec.horizon {
+            mask.extend(std::iter::repeat_n(true, sd).chain(std::iter::repeat_n(false, ad)));
+        }
+        mask
     }
 
     /// Network FLOPs of one sampling call for `n` samples at `nfe`.
@@ -331,19 +430,52 @@ mod tests {
     use crate::{Gradient, guided_prediction};
 
     /// A small network with random weights everywhere, so every path of the pullback counts.
-    fn small_net() -> TrajectoryNet {
+    fn small_net(pairing: Pairing) -> TrajectoryNet {
         let layout = TokenLayout { state_dim: 3, action_dim: 2, spec: WindowSpec { history: 1, horizon: 2 } };
-        let config =
-            ModelConfig { history: 1, horizon: 2, d_model: 8, heads: 2, layers: 2, d_ff: 12, time_features: 4 };
+        let config = ModelConfig {
+            history: 1,
+            horizon: 2,
+            d_model: 8,
+            heads: 2,
+            layers: 2,
+            d_ff: 12,
+            time_features: 4,
+            pairing,
+        };
         let mut rng = StdRng::seed_from_u64(4);
         let mut net = Transformer::new(config.transformer(&layout), &mut rng);
         net.params.iter_mut().for_each(|p| *p += 0.4 * rng.random::<f32>() - 0.2);
-        TrajectoryNet { layout, net }
+        TrajectoryNet { layout, pairing: config.pairing, net }
+    }
+
+    #[test]
+    fn tokens_hold_the_conditioning_and_future_in_window_order_and_future_reads_them_back() {
+        for (pairing, padded) in [(Pairing::StateAction, 0), (Pairing::ActionState, 5)] {
+            let net = small_net(pairing);
+            let (c, f) = (net.layout.cond_len(), net.layout.future_len());
+            let cond: Vec<f32> = (0..2 * c).map(|i| 100.0 + i as f32).collect();
+            let x: Vec<f32> = (0..2 * f).map(|i| -(i as f32) - 1.0).collect();
+            let tokens = net.tokens(&x, &cond, 2);
+            assert_eq!(tokens.len(), 2 * (net.layout.window_len() + padded));
+            assert_eq!(net.future(&tokens), x);
+            if pairing == Pairing::ActionState {
+                // Token 0 is [padding action, s_{t-1}]; the last is [a_{t+H}, padding state].
+                assert_eq!(tokens[..2], [0.0, 0.0]);
+                assert_eq!(tokens[2], 100.0);
+                let row = net.layout.window_len() + padded;
+                assert_eq!(tokens[row - 3..row], [0.0; 3]);
+            }
+        }
     }
 
     #[test]
     fn guidance_through_the_network_is_the_gradient_of_the_cost_of_the_clean_estimate() {
-        let net = small_net();
+        for pairing in [Pairing::StateAction, Pairing::ActionState] {
+            guidance_matches_finite_differences(&small_net(pairing));
+        }
+    }
+
+    fn guidance_matches_finite_differences(net: &TrajectoryNet) {
         let (n, f, c) = (2, net.layout.future_len(), net.layout.cond_len());
         let x: Vec<f32> = (0..n * f).map(|i| (i as f32 * 0.7).sin()).collect();
         let cond: Vec<f32> = (0..n * c).map(|i| (i as f32 * 0.3).cos()).collect();
@@ -358,7 +490,7 @@ mod tests {
                 x.iter().zip(&y).zip(&target).map(|((x, y), g)| 0.5 * f64::from(a * x + b * y - g).powi(2)).sum()
             };
             let guidance = Guidance { weight: 1.0, grad: &grad, steps: 0..1, gradient: Gradient::ThroughNetwork };
-            let (_, through) = guided_prediction(&net, &x, &t, &cond, n, (a, b), Some(&guidance), 0);
+            let (_, through) = guided_prediction(net, &x, &t, &cond, n, (a, b), Some(&guidance), 0);
             let through = through.unwrap();
             let eps = 1e-2;
             for k in 0..x.len() {
@@ -371,7 +503,7 @@ mod tests {
             }
             // The cost-only gradient differs: it leaves out the network's Jacobian.
             let guidance = Guidance { gradient: Gradient::CostOnly, ..guidance };
-            let (_, only) = guided_prediction(&net, &x, &t, &cond, n, (a, b), Some(&guidance), 0);
+            let (_, only) = guided_prediction(net, &x, &t, &cond, n, (a, b), Some(&guidance), 0);
             assert!(only.unwrap().iter().zip(&through).any(|(p, q)| (p - q).abs() > 1e-3));
         }
     }

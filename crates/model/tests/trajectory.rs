@@ -36,7 +36,16 @@ fn guidance_acts_in_physical_units() {
         action_std: vec![0.5; spec.actions() * 2],
         windows: 1,
     };
-    let config = ModelConfig { history: 1, horizon: 2, d_model: 8, heads: 2, layers: 1, d_ff: 16, time_features: 4 };
+    let config = ModelConfig {
+        history: 1,
+        horizon: 2,
+        d_model: 8,
+        heads: 2,
+        layers: 1,
+        d_ff: 16,
+        time_features: 4,
+        ..Default::default()
+    };
     let objective = TrainConfig::default().objective("fm").unwrap();
     let model = TrajectoryModel::new(l, config, objective, stats, 0);
     let cond = vec![10.0f32; 4 * l.cond_len()];

@@ -249,8 +249,9 @@ fn layer_norm_backward(
 }
 
 /// Sinusoidal features of noise levels `t` in [0, 1] (scaled by 1000, as diffusion models do).
-fn time_features(t: &[f32], features: usize) -> Vec<f32> {
-    let half = features / 2;
+/// With several times per sample (`t` holds `n x k`), each gets `features / k` of them.
+fn time_features(t: &[f32], n: usize, features: usize) -> Vec<f32> {
+    let half = features / (t.len() / n.max(1)).max(1) / 2;
     t.iter()
         .flat_map(|&t| {
             (0..half)
@@ -313,14 +314,17 @@ impl Transformer {
         2.0 * (l * 2.0 * d * c.token_dim as f64 + c.layers as f64 * block)
     }
 
-    /// Forward pass: `x` is `n x tokens x token_dim`, `t` the `n` noise levels.
+    /// Forward pass: `x` is `n x tokens x token_dim`, `t` the noise levels (`n`, or `n x k`
+    /// for a model of k times, such as an interval's start and length).
     pub fn forward(&self, x: &[f32], t: &[f32], n: usize) -> Tape {
         let c = &self.config;
         let (d, l, rows) = (c.d_model, c.tokens, n * c.tokens);
         assert_eq!(x.len(), rows * c.token_dim, "input is not n x tokens x token_dim");
-        assert_eq!(t.len(), n, "one noise level per sample");
+        let times = t.len().checked_div(n).unwrap_or(1);
+        assert!(times >= 1 && t.len() == n * times, "the same number of noise levels for every sample");
+        assert!(c.time_features.is_multiple_of(2 * times), "time_features must split evenly between the times");
         let s = &self.slots;
-        let tf = time_features(t, c.time_features);
+        let tf = time_features(t, n, c.time_features);
         let temb = dense::forward(&tf, n, self.p(&s.time.0), self.p(&s.time.1), c.time_features);
         let mut h = dense::forward(x, rows, self.p(&s.input.0), self.p(&s.input.1), c.token_dim);
         let pos = self.p(&s.pos);

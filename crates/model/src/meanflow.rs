@@ -1,0 +1,96 @@
+//! MeanFlow (Geng et al. 2025): on Flow Matching's straight path `x_s = (1 - s) x_0 + s x_1`
+//! (noise at s = 0, data at s = 1), regress the *average* velocity over an interval,
+//! `u(x_s, s, r) = (z_r - z_s) / (r - s)` along the sampling ODE's solution `z`, so that one step
+//! `x_r = x_s + (r - s) u` crosses the whole interval: at NFE 1 a single network evaluation goes
+//! from noise to data. The network takes two times per sample, the start `s` and the interval's
+//! length `r - s`; a length of 0 asks for the instantaneous velocity, Flow Matching's target.
+//!
+//! Training uses the MeanFlow identity `u = v + (r - s) du/ds`, where `v = x_1 - x_0` and
+//! `du/ds = v . d_x u + d_s u` is the total derivative along the path with `r` held (so the
+//! length input shrinks as `s` grows). That derivative is a Jacobian-vector product; here it is
+//! a central difference of two network evaluations, and like the paper's JVP it is not
+//! differentiated (stop-gradient), so training needs no forward-mode autodiff.
+
+use crate::{Guidance, Network, TrainingBatch, guided_prediction};
+use rand::Rng;
+use rand_distr::{Distribution, StandardNormal};
+
+/// Step of the central difference along the path: small against the fastest time feature
+/// (1000 rad per unit of time), large against f32 rounding of outputs of order 1.
+const DIFFERENCE_STEP: f32 = 1e-4;
+
+/// A training batch from clean samples `x1` (n x dim): a share `share` of the samples get an
+/// interval `r > s`, the rest `r = s` (the plain Flow Matching target). Times `t` are
+/// `[s, r - s]` per sample.
+pub fn training_batch(
+    net: &dyn Network,
+    cond: &[f32],
+    x1: &[f32],
+    dim: usize,
+    share: f32,
+    rng: &mut impl Rng,
+) -> TrainingBatch {
+    let n = x1.len() / dim;
+    let mut t = Vec::with_capacity(2 * n);
+    for _ in 0..n {
+        let (a, b) = (rng.random::<f32>(), rng.random::<f32>());
+        let (s, r) = if rng.random::<f32>() < share { (a.min(b), a.max(b)) } else { (a, a) };
+        t.extend([s, r - s]);
+    }
+    let mut x = vec![0.0; x1.len()];
+    let mut v = vec![0.0; x1.len()];
+    for i in 0..x1.len() {
+        let x0: f32 = StandardNormal.sample(rng);
+        let s = t[2 * (i / dim)];
+        x[i] = (1.0 - s) * x0 + s * x1[i];
+        v[i] = x1[i] - x0;
+    }
+    let mut target = v.clone();
+    // du/ds on the samples with an interval, by a central difference along (v, 1, -1).
+    let wide: Vec<usize> = (0..n).filter(|&i| t[2 * i + 1] > 0.0).collect();
+    if !wide.is_empty() {
+        let c = cond.len() / n.max(1);
+        let rows = |i: &usize| i * dim..(i + 1) * dim;
+        let cond_w: Vec<f32> = wide.iter().flat_map(|&i| cond[i * c..(i + 1) * c].to_vec()).collect();
+        let shifted = |h: f32| -> Vec<f32> {
+            let xs: Vec<f32> = wide.iter().flat_map(|i| rows(i).map(|j| x[j] + h * v[j])).collect();
+            let ts: Vec<f32> = wide.iter().flat_map(|&i| [t[2 * i] + h, t[2 * i + 1] - h]).collect();
+            net.predict(&xs, &ts, &cond_w, wide.len())
+        };
+        let (plus, minus) = (shifted(DIFFERENCE_STEP), shifted(-DIFFERENCE_STEP));
+        for (k, &i) in wide.iter().enumerate() {
+            let length = t[2 * i + 1];
+            for (o, j) in rows(&i).enumerate() {
+                let du_ds = (plus[k * dim + o] - minus[k * dim + o]) / (2.0 * DIFFERENCE_STEP);
+                target[j] = v[j] + length * du_ds;
+            }
+        }
+    }
+    TrainingBatch { x, t, target }
+}
+
+/// Samples `n` trajectories from noise `x0` (n x dim) in `nfe` equal jumps. With guidance, each
+/// active step uses `u' = u - w grad_x G(x_hat)` with the clean estimate `x_hat = x + (1 - s) u`:
+/// exact on the last jump (and so at NFE 1), where the step's interval reaches the data.
+pub fn sample(
+    net: &dyn Network,
+    cond: &[f32],
+    x0: Vec<f32>,
+    n: usize,
+    nfe: usize,
+    guidance: Option<&Guidance>,
+) -> Vec<f32> {
+    let steps = nfe.max(1);
+    let h = 1.0 / steps as f32;
+    let mut x = x0;
+    for step in 0..steps {
+        let s = step as f32 * h;
+        let times: Vec<f32> = (0..n).flat_map(|_| [s, h]).collect();
+        let (mut u, delta) = guided_prediction(net, &x, &times, cond, n, (1.0, 1.0 - s), guidance, step);
+        if let Some(delta) = delta {
+            u.iter_mut().zip(delta).for_each(|(u, d)| *u -= d);
+        }
+        x.iter_mut().zip(&u).for_each(|(x, u)| *x += h * u);
+    }
+    x
+}
