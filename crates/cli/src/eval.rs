@@ -43,8 +43,7 @@ pub struct Common {
 
 /// `through-network` or `cost-only`.
 pub(crate) fn parse_gradient(text: &str) -> Result<Gradient, String> {
-    serde_json::from_str(&format!("\"{text}\""))
-        .map_err(|_| format!("'{text}': use through-network, cost-only or inpaint"))
+    serde_json::from_str(&format!("\"{text}\"")).map_err(|_| format!("'{text}': use through-network or cost-only"))
 }
 
 impl Common {

@@ -223,7 +223,9 @@ pub fn trajectory_model(model: &TrajectoryModel) -> Result<Vec<u8>, ExportError>
         Ok(g.node("LayerNormalization", &[x, &gamma, &beta], vec![int("axis", -1), float("epsilon", 1e-5)]))
     };
     // Tokens: concat(cond, x), padded with zeros as the pairing asks, cut into `tokens` rows.
-    let (before, after) = model.net.padding();
+    let (before, after) = model.net.padding().ok_or_else(|| {
+        ExportError::Unsupported("state-action-state tokens (each state in two tokens) do not export yet".into())
+    })?;
     let mut joined = g.node("Concat", &[&cond, &x], vec![int("axis", 1)]);
     if before + after > 0 {
         let pads = g.int64s(&[0, before as i64, 0, after as i64]);

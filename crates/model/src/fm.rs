@@ -86,36 +86,3 @@ pub fn sample(
     }
     x
 }
-
-/// Euler-samples from noise `x0` (n x dim) with the entries where `known_mask` is true held on
-/// the path to `known` (`x_s = (1 - s) x0 + s known` there, `known` at the end): the other
-/// entries are generated conditioned on them.
-pub fn sample_inpainted(
-    net: &dyn Network,
-    cond: &[f32],
-    mut x: Vec<f32>,
-    n: usize,
-    nfe: usize,
-    known: &[f32],
-    known_mask: &[bool],
-) -> Vec<f32> {
-    let dim = known_mask.len();
-    let x0 = x.clone();
-    let hold = |x: &mut [f32], s: f32| {
-        for (i, v) in x.iter_mut().enumerate() {
-            if known_mask[i % dim] {
-                *v = (1.0 - s) * x0[i] + s * known[i];
-            }
-        }
-    };
-    let steps = nfe.max(1);
-    let h = 1.0 / steps as f32;
-    for step in 0..steps {
-        let s = step as f32 * h;
-        hold(&mut x, s);
-        let v = net.predict(&x, &vec![s; n], cond, n);
-        x.iter_mut().zip(&v).for_each(|(x, v)| *x += h * v);
-    }
-    hold(&mut x, 1.0);
-    x
-}

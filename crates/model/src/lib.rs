@@ -59,10 +59,6 @@ pub enum Gradient {
     ThroughNetwork,
     /// `grad G(x_hat)`: the cost's gradient alone, as if `x_hat` were `x`.
     CostOnly,
-    /// Through the network, then the actions are sampled again with the guided states held
-    /// fixed along the path (inpainting by replacement): the model's own coupling of states and
-    /// actions serves as inverse dynamics for the guided plan. Twice the network evaluations.
-    Inpaint,
 }
 
 /// Test-time guidance: `grad` returns the gradient of the task cost at the predicted clean
@@ -98,7 +94,7 @@ pub(crate) fn guided_prediction(
             let grad = (g.grad)(&x_hat(&y), n);
             (y, grad)
         }
-        Gradient::ThroughNetwork | Gradient::Inpaint => {
+        Gradient::ThroughNetwork => {
             // grad_x G = a grad G + (dy/dx)^T (b grad G), with grad G at x_hat(y).
             let mut at_x_hat = Vec::new();
             let (y, pulled) = net.predict_pullback(x, t, cond, n, &mut |y| {

@@ -327,7 +327,7 @@ impl Trainer {
         let grads = grads.then(|| {
             // d loss / d output: zero on the conditioning tokens' entries and the padding.
             let d_future: Vec<f32> = pred.iter().zip(&batch.target).map(|(p, t)| 2.0 * (p - t) / count).collect();
-            let d = net.tokens(&d_future, &vec![0.0; cond.len()], n);
+            let d = net.output_cotangent(&d_future, n);
             let mut g = vec![0.0; net.net.num_params()];
             net.net.backward(&tape, &d, &mut g);
             g

@@ -91,14 +91,41 @@ pub enum Pairing {
     /// with the state it leads to, so a guided `s_{t+1}` is in the same token as `a_t`, and no
     /// token mixes clean and noisy entries.
     ActionState,
+    /// Token k is `[s_k, a_k, s_{k+1}]` (the last padded): an action sees both the state it is
+    /// taken in and the state it leads to in its own token. Each state enters two tokens and is
+    /// read back from the first slot of its own.
+    StateActionState,
 }
 
 impl Pairing {
-    /// Zeros before and after the window: (action_dim, state_dim) for action-state tokens.
-    fn padding(self, layout: &TokenLayout) -> (usize, usize) {
+    /// Width of a token.
+    fn token_dim(self, layout: &TokenLayout) -> usize {
         match self {
-            Pairing::StateAction => (0, 0),
-            Pairing::ActionState => (layout.action_dim, layout.state_dim),
+            Pairing::StateActionState => 2 * layout.state_dim + layout.action_dim,
+            _ => layout.token_dim(),
+        }
+    }
+
+    /// Tokens per sample.
+    fn tokens(self, layout: &TokenLayout) -> usize {
+        layout.tokens() + usize::from(self == Pairing::ActionState)
+    }
+
+    /// For each entry of a sample's tokens, the window entry it holds (`None`: zero padding).
+    fn gather(self, layout: &TokenLayout) -> Vec<Option<usize>> {
+        let (w, sd, td) = (layout.window_len(), layout.state_dim, layout.token_dim());
+        match self {
+            Pairing::StateAction => (0..w).map(Some).collect(),
+            Pairing::ActionState => {
+                let pad = |k| std::iter::repeat_n(None, k);
+                pad(layout.action_dim).chain((0..w).map(Some)).chain(pad(sd)).collect()
+            }
+            Pairing::StateActionState => (0..layout.tokens())
+                .flat_map(|k| {
+                    let next = (k + 1 < layout.tokens()).then_some((k + 1) * td);
+                    (k * td..(k + 1) * td).map(Some).chain((0..sd).map(move |j| next.map(|at| at + j)))
+                })
+                .collect(),
         }
     }
 }
@@ -147,8 +174,8 @@ impl ModelConfig {
 
     pub fn transformer(&self, layout: &TokenLayout) -> TransformerConfig {
         TransformerConfig {
-            token_dim: layout.token_dim(),
-            tokens: layout.tokens() + usize::from(self.pairing == Pairing::ActionState),
+            token_dim: self.pairing.token_dim(layout),
+            tokens: self.pairing.tokens(layout),
             d_model: self.d_model,
             heads: self.heads,
             layers: self.layers,
@@ -255,21 +282,33 @@ pub struct TrajectoryNet {
     pub layout: TokenLayout,
     pub pairing: Pairing,
     pub net: Transformer,
+    /// The window entry each token entry holds ([`Pairing::gather`]).
+    gather: Vec<Option<usize>>,
+    /// For each window entry, the token entry the network predicts it in (the first holding it).
+    own: Vec<usize>,
 }
 
 impl TrajectoryNet {
-    /// Tokens `concat(cond_i, x_i)` for each sample, padded as the pairing asks.
+    pub fn new(layout: TokenLayout, pairing: Pairing, net: Transformer) -> Self {
+        let gather = pairing.gather(&layout);
+        let mut own = vec![usize::MAX; layout.window_len()];
+        for (p, j) in gather.iter().enumerate().rev() {
+            if let Some(j) = *j {
+                own[j] = p;
+            }
+        }
+        Self { layout, pairing, net, gather, own }
+    }
+
+    /// Tokens of `concat(cond_i, x_i)` for each sample, as the pairing cuts them.
     pub fn tokens(&self, x: &[f32], cond: &[f32], n: usize) -> Vec<f32> {
         let (c, f) = (self.layout.cond_len(), self.layout.future_len());
-        let (before, after) = self.padding();
         assert_eq!(x.len(), n * f, "future has the wrong length");
         assert_eq!(cond.len(), n * c, "conditioning has the wrong length");
-        let mut out = Vec::with_capacity(n * (before + c + f + after));
+        let mut out = Vec::with_capacity(n * self.gather.len());
         for i in 0..n {
-            out.extend(std::iter::repeat_n(0.0, before));
-            out.extend_from_slice(&cond[i * c..(i + 1) * c]);
-            out.extend_from_slice(&x[i * f..(i + 1) * f]);
-            out.extend(std::iter::repeat_n(0.0, after));
+            let at = |j: usize| if j < c { cond[i * c + j] } else { x[i * f + j - c] };
+            out.extend(self.gather.iter().map(|j| j.map_or(0.0, at)));
         }
         out
     }
@@ -279,17 +318,50 @@ impl TrajectoryNet {
         self.net.forward(&self.tokens(x, cond, n), &network_times(t, n), n)
     }
 
-    /// Zeros the tokens add before and after a window.
-    pub fn padding(&self) -> (usize, usize) {
-        self.pairing.padding(&self.layout)
+    /// The future part of each sample's output tokens, each entry read from its own token.
+    pub fn future(&self, output: &[f32]) -> Vec<f32> {
+        let c = self.layout.cond_len();
+        output.chunks_exact(self.gather.len()).flat_map(|row| self.own[c..].iter().map(|&p| row[p])).collect()
     }
 
-    /// The future part of each sample's output tokens.
-    pub fn future(&self, output: &[f32]) -> Vec<f32> {
-        let (w, c, f) = (self.layout.window_len(), self.layout.cond_len(), self.layout.future_len());
-        let (before, after) = self.padding();
-        let start = before + c;
-        output.chunks_exact(before + w + after).flat_map(|row| row[start..start + f].iter().copied()).collect()
+    /// A cotangent of the future (n x future) as one of the output tokens: zero on the
+    /// conditioning, the padding and the entries that are not read back.
+    pub fn output_cotangent(&self, d_future: &[f32], n: usize) -> Vec<f32> {
+        let (c, f) = (self.layout.cond_len(), self.layout.future_len());
+        let mut out = vec![0.0; n * self.gather.len()];
+        for (i, row) in out.chunks_exact_mut(self.gather.len()).enumerate() {
+            for (j, &p) in self.own[c..].iter().enumerate() {
+                row[p] = d_future[i * f + j];
+            }
+        }
+        out
+    }
+
+    /// A gradient on the input tokens as one on the future (n x future): the sum over every
+    /// token entry that holds a future entry.
+    pub fn future_gradient(&self, d_tokens: &[f32]) -> Vec<f32> {
+        let (c, f) = (self.layout.cond_len(), self.layout.future_len());
+        let mut out = Vec::new();
+        for row in d_tokens.chunks_exact(self.gather.len()) {
+            let mut g = vec![0.0; f];
+            for (p, j) in self.gather.iter().enumerate() {
+                if let Some(j) = j.filter(|&j| j >= c) {
+                    g[j - c] += row[p];
+                }
+            }
+            out.extend(g);
+        }
+        out
+    }
+
+    /// Zeros a sample's tokens hold before and after its window (for the ONNX graph), or `None`
+    /// where tokens are not a padded window.
+    pub fn padding(&self) -> Option<(usize, usize)> {
+        match self.pairing {
+            Pairing::StateAction => Some((0, 0)),
+            Pairing::ActionState => Some((self.layout.action_dim, self.layout.state_dim)),
+            Pairing::StateActionState => None,
+        }
     }
 }
 
@@ -322,10 +394,8 @@ impl Network for TrajectoryNet {
         let tape = self.forward(x, t, cond, n);
         let y = self.future(&tape.output);
         let u = cotangent(&y);
-        // The cotangent covers the future tokens; the conditioning's outputs are not used.
-        let zeros = vec![0.0; self.layout.cond_len() * n];
-        let d_input = self.net.input_grad(&tape, &self.tokens(&u, &zeros, n));
-        (y, self.future(&d_input))
+        let d_input = self.net.input_grad(&tape, &self.output_cotangent(&u, n));
+        (y, self.future_gradient(&d_input))
     }
 }
 
@@ -353,7 +423,7 @@ impl TrajectoryModel {
     pub fn new(layout: TokenLayout, config: ModelConfig, objective: Objective, stats: Stats, seed: u64) -> Self {
         let net = Transformer::new(config.transformer(&layout), &mut StdRng::seed_from_u64(seed));
         let norm = Normaliser::new(&layout, &stats);
-        Self { config, objective, net: TrajectoryNet { layout, pairing: config.pairing, net }, stats, norm }
+        Self { config, objective, net: TrajectoryNet::new(layout, config.pairing, net), stats, norm }
     }
 
     pub fn layout(&self) -> &TokenLayout {
@@ -396,26 +466,8 @@ impl TrajectoryModel {
                 ddpm::sample(&self.net, &schedule, prediction, &cond, noise, n, nfe, clip, inner.as_ref(), rng)
             }
         };
-        if let (Some(g), Objective::Fm { .. }) = (guidance, self.objective)
-            && g.gradient == Gradient::Inpaint
-            && g.weight != 0.0
-        {
-            let mask = self.state_mask();
-            let noise: Vec<f32> = (0..n * f).map(|_| StandardNormal.sample(rng)).collect();
-            x = fm::sample_inpainted(&self.net, &cond, noise, n, nfe, &x, &mask);
-        }
         self.norm.denormalise(&mut x, c, f);
         x
-    }
-
-    /// True at the state entries of a future `[a_t, s_{t+1}, a_{t+1}, ...]`.
-    fn state_mask(&self) -> Vec<bool> {
-        let (sd, ad) = (self.layout().state_dim, self.layout().action_dim);
-        let mut mask = vec![false; ad];
-        for _ in 0..self.layout().spec.horizon {
-            mask.extend(std::iter::repeat_n(true, sd).chain(std::iter::repeat_n(false, ad)));
-        }
-        mask
     }
 
     /// Network FLOPs of one sampling call for `n` samples at `nfe`.
@@ -445,32 +497,38 @@ mod tests {
         let mut rng = StdRng::seed_from_u64(4);
         let mut net = Transformer::new(config.transformer(&layout), &mut rng);
         net.params.iter_mut().for_each(|p| *p += 0.4 * rng.random::<f32>() - 0.2);
-        TrajectoryNet { layout, pairing: config.pairing, net }
+        TrajectoryNet::new(layout, config.pairing, net)
     }
 
     #[test]
     fn tokens_hold_the_conditioning_and_future_in_window_order_and_future_reads_them_back() {
-        for (pairing, padded) in [(Pairing::StateAction, 0), (Pairing::ActionState, 5)] {
+        let pairings = [Pairing::StateAction, Pairing::ActionState, Pairing::StateActionState];
+        for (pairing, len) in pairings.into_iter().zip([20, 25, 32]) {
             let net = small_net(pairing);
             let (c, f) = (net.layout.cond_len(), net.layout.future_len());
             let cond: Vec<f32> = (0..2 * c).map(|i| 100.0 + i as f32).collect();
             let x: Vec<f32> = (0..2 * f).map(|i| -(i as f32) - 1.0).collect();
             let tokens = net.tokens(&x, &cond, 2);
-            assert_eq!(tokens.len(), 2 * (net.layout.window_len() + padded));
-            assert_eq!(net.future(&tokens), x);
-            if pairing == Pairing::ActionState {
-                // Token 0 is [padding action, s_{t-1}]; the last is [a_{t+H}, padding state].
-                assert_eq!(tokens[..2], [0.0, 0.0]);
-                assert_eq!(tokens[2], 100.0);
-                let row = net.layout.window_len() + padded;
-                assert_eq!(tokens[row - 3..row], [0.0; 3]);
+            assert_eq!(tokens.len(), 2 * len, "{pairing:?}");
+            assert_eq!(net.future(&tokens), x, "{pairing:?}");
+            // Reading back and spreading a cotangent are each other's transposes on own slots.
+            assert_eq!(net.future(&net.output_cotangent(&x, 2)), x, "{pairing:?}");
+            let first = &tokens[..len];
+            match pairing {
+                // [padding action, s_{t-1}], ..., [a_{t+H}, padding state].
+                Pairing::ActionState => assert!(first[..2] == [0.0; 2] && first[2] == 100.0 && first[22..] == [0.0; 3]),
+                // [s_{t-1}, a_{t-1}, s_t]: s_t is the conditioning's entries 5-7.
+                Pairing::StateActionState => assert!(first[5..8] == [105.0, 106.0, 107.0] && first[29..] == [0.0; 3]),
+                Pairing::StateAction => {
+                    assert_eq!(first, &cond[..c].iter().chain(&x[..f]).copied().collect::<Vec<_>>())
+                }
             }
         }
     }
 
     #[test]
     fn guidance_through_the_network_is_the_gradient_of_the_cost_of_the_clean_estimate() {
-        for pairing in [Pairing::StateAction, Pairing::ActionState] {
+        for pairing in [Pairing::StateAction, Pairing::ActionState, Pairing::StateActionState] {
             guidance_matches_finite_differences(&small_net(pairing));
         }
     }
