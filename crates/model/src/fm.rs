@@ -38,15 +38,22 @@ pub fn training_batch(x1: &[f32], dim: usize, times: TimeDistribution, rng: &mut
             }
         })
         .collect();
+    let (x, target) = on_path(x1, dim, |row| t[row], rng);
+    TrainingBatch { x, t, target }
+}
+
+/// Points `x_s = (1 - s) x_0 + s x_1` with fresh noise `x_0`, at the time `s_of(row)` of each
+/// row of `x1` (n x dim), and the path's velocity `x_1 - x_0` there.
+pub(crate) fn on_path(x1: &[f32], dim: usize, s_of: impl Fn(usize) -> f32, rng: &mut impl Rng) -> (Vec<f32>, Vec<f32>) {
     let mut x = vec![0.0; x1.len()];
-    let mut target = vec![0.0; x1.len()];
+    let mut v = vec![0.0; x1.len()];
     for i in 0..x1.len() {
         let x0: f32 = StandardNormal.sample(rng);
-        let s = t[i / dim];
+        let s = s_of(i / dim);
         x[i] = (1.0 - s) * x0 + s * x1[i];
-        target[i] = x1[i] - x0;
+        v[i] = x1[i] - x0;
     }
-    TrainingBatch { x, t, target }
+    (x, v)
 }
 
 /// Samples `n` trajectories with `nfe` network evaluations from noise `x0` (n x dim).

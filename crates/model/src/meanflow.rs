@@ -11,9 +11,8 @@
 //! a central difference of two network evaluations, and like the paper's JVP it is not
 //! differentiated (stop-gradient), so training needs no forward-mode autodiff.
 
-use crate::{Guidance, Network, TrainingBatch, guided_prediction};
+use crate::{Guidance, Network, TrainingBatch, fm, guided_prediction};
 use rand::Rng;
-use rand_distr::{Distribution, StandardNormal};
 
 /// Step of the central difference along the path: small against the fastest time feature
 /// (1000 rad per unit of time), large against f32 rounding of outputs of order 1.
@@ -37,14 +36,7 @@ pub fn training_batch(
         let (s, r) = if rng.random::<f32>() < share { (a.min(b), a.max(b)) } else { (a, a) };
         t.extend([s, r - s]);
     }
-    let mut x = vec![0.0; x1.len()];
-    let mut v = vec![0.0; x1.len()];
-    for i in 0..x1.len() {
-        let x0: f32 = StandardNormal.sample(rng);
-        let s = t[2 * (i / dim)];
-        x[i] = (1.0 - s) * x0 + s * x1[i];
-        v[i] = x1[i] - x0;
-    }
+    let (x, v) = fm::on_path(x1, dim, |row| t[2 * row], rng);
     let mut target = v.clone();
     // du/ds on the samples with an interval, by a central difference along (v, 1, -1).
     let wide: Vec<usize> = (0..n).filter(|&i| t[2 * i + 1] > 0.0).collect();
