@@ -65,10 +65,33 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     std::fs::write(dir.join("longer.toml"), "[model]\nhorizon = 3\n").unwrap();
     let (refused, text) = flowmimic(dir, &["--config", "longer.toml", "train", "data", "-o", "fm", "--resume"]);
     assert!(!refused && text.contains("checkpoint.safetensors") && text.contains("horizon: 3"), "{text}");
-    // Both objectives drive the humanoid; the rollout holds every step's record.
-    for model in ["fm", "ddpm"] {
+    // MeanFlow trains with its loss falling, and on tokens of state, action and next state.
+    std::fs::write(dir.join("sas.toml"), "[model]\npairing = \"state-action-state\"\n").unwrap();
+    let meanflow = ok(dir, &["--config", "sas.toml", "train", "data", "--objective", "meanflow", "-o", "meanflow"]);
+    assert!(meanflow.contains("MEANFLOW Transformer") && meanflow.contains("tokens of 399:"), "{meanflow}");
+    let log = std::fs::read_to_string(dir.join("meanflow/log.csv")).unwrap();
+    let losses: Vec<f64> = log.lines().skip(1).map(|l| l.split(',').nth(1).unwrap().parse().unwrap()).collect();
+    assert!(losses[2] < 0.95 * losses[0], "MeanFlow losses {losses:?}"); // measured 1.97 -> 1.79
+    let (refused, text) = flowmimic(dir, &["export", "meanflow", "-o", "meanflow.onnx"]);
+    assert!(!refused && text.contains("MeanFlow"), "{text}");
+    // Every objective drives the humanoid (MeanFlow in one step); the rollout holds every step.
+    for (model, nfe) in [("fm", "5"), ("ddpm", "5"), ("meanflow", "1")] {
         let out = format!("{model}.rollout.safetensors");
-        let args = ["run", "--model", model, "--task", "joystick", "--seconds", "0.5", "--envs", "2", "-o", &out];
+        let args = [
+            "run",
+            "--model",
+            model,
+            "--task",
+            "joystick",
+            "--seconds",
+            "0.5",
+            "--envs",
+            "2",
+            "--nfe",
+            nfe,
+            "-o",
+            &out,
+        ];
         let run = ok(dir, &args);
         assert!(run.contains("environments fell") && dir.join(&out).exists(), "{run}");
     }
