@@ -1,12 +1,13 @@
 //! The trajectory model: a [`Transformer`] over one token per time step of a window, with the
-//! dataset's normalisation, trained with Flow Matching or DDPM, and its sampling API.
+//! dataset's normalisation, trained with Flow Matching, MeanFlow or DDPM, and its sampling API.
 //!
 //! A window interleaves states and actions, `[s_{t-N}, a_{t-N}, ..., s_t, a_t, ..., s_{t+H}, a_{t+H}]`.
 //! Its prefix up to and including `s_t` is the conditioning `O_t` (clean); the rest is the
-//! future `tau_t = [a_t, s_{t+1}, a_{t+1}, ...]` that the model denoises. Token k is
+//! future `tau_t = [a_t, s_{t+1}, a_{t+1}, ...]` that the model denoises. By default token k is
 //! `[s_{t-N+k}, a_{t-N+k}]`, so the network sees `concat(O_t, tau_t)` reshaped to
-//! `(N + 1 + H) x (state + action)`; which entries are clean is fixed by position, and each
-//! position has its own learned embedding. The loss and the sampler only look at `tau_t`.
+//! `(N + 1 + H) x (state + action)` ([`Pairing`] offers other cuts); which entries are clean is
+//! fixed by position, and each position has its own learned embedding. The loss and the sampler
+//! only look at `tau_t`.
 
 use crate::fm::{self, Solver};
 use crate::{Gradient, Guidance, Network, ddpm, meanflow};
@@ -93,7 +94,7 @@ pub enum Pairing {
     ActionState,
     /// Token k is `[s_k, a_k, s_{k+1}]` (the last padded): an action sees both the state it is
     /// taken in and the state it leads to in its own token. Each state enters two tokens and is
-    /// read back from the first slot of its own.
+    /// predicted in the first, beside the action that leads to it.
     StateActionState,
 }
 
