@@ -1,7 +1,7 @@
 //! Flow Matching (paper eq. 1): regress `v(x_s, s)` on `x_1 - x_0` along the straight path
 //! `x_s = (1 - s) x_0 + s x_1`, `x_0 ~ N(0, I)`; sample by integrating `dx/ds = v` from s = 0.
 
-use crate::{Guidance, Network, TrainingBatch, guided_prediction};
+use crate::{Guidance, Network, TrainingBatch, guided_velocity};
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
@@ -74,11 +74,7 @@ pub fn sample(
     let h = 1.0 / steps as f32;
     let mut x = x0;
     let velocity = |x: &[f32], s: f32, step: usize| -> Vec<f32> {
-        let (mut v, delta) = guided_prediction(net, x, &vec![s; n], cond, n, (1.0, 1.0 - s), guidance, step);
-        if let Some(delta) = delta {
-            v.iter_mut().zip(delta).for_each(|(v, d)| *v -= d);
-        }
-        v
+        guided_velocity(net, x, (s, &vec![s; n]), cond, n, guidance, step)
     };
     for step in 0..steps {
         let s = step as f32 * h;

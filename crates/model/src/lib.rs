@@ -108,6 +108,26 @@ pub(crate) fn guided_prediction(
     (y, Some(grad_x.into_iter().map(|v: f32| g.weight * v).collect()))
 }
 
+/// The velocity along the straight path at `x` (time `s`, network times `t`), less
+/// `w grad_x G(x_hat)` on guided steps, with the clean estimate `x_hat = x + (1 - s) v`: the
+/// step Flow Matching's and MeanFlow's samplers both take.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn guided_velocity(
+    net: &dyn Network,
+    x: &[f32],
+    (s, t): (f32, &[f32]),
+    cond: &[f32],
+    n: usize,
+    guidance: Option<&Guidance>,
+    step: usize,
+) -> Vec<f32> {
+    let (mut v, delta) = guided_prediction(net, x, t, cond, n, (1.0, 1.0 - s), guidance, step);
+    if let Some(delta) = delta {
+        v.iter_mut().zip(delta).for_each(|(v, d)| *v -= d);
+    }
+    v
+}
+
 /// A training batch: the network's input, noise levels and regression target.
 pub struct TrainingBatch {
     pub x: Vec<f32>,

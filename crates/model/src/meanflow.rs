@@ -11,7 +11,7 @@
 //! a central difference of two network evaluations, and like the paper's JVP it is not
 //! differentiated (stop-gradient), so training needs no forward-mode autodiff.
 
-use crate::{Guidance, Network, TrainingBatch, fm, guided_prediction};
+use crate::{Guidance, Network, TrainingBatch, fm, guided_velocity};
 use rand::Rng;
 
 /// Step of the central difference along the path: small against the fastest time feature
@@ -78,10 +78,7 @@ pub fn sample(
     for step in 0..steps {
         let s = step as f32 * h;
         let times: Vec<f32> = (0..n).flat_map(|_| [s, h]).collect();
-        let (mut u, delta) = guided_prediction(net, &x, &times, cond, n, (1.0, 1.0 - s), guidance, step);
-        if let Some(delta) = delta {
-            u.iter_mut().zip(delta).for_each(|(u, d)| *u -= d);
-        }
+        let u = guided_velocity(net, &x, (s, &times), cond, n, guidance, step);
         x.iter_mut().zip(&u).for_each(|(x, u)| *x += h * u);
     }
     x

@@ -381,7 +381,7 @@ impl Network for TrajectoryNet {
     }
 
     fn predict(&self, x: &[f32], t: &[f32], cond: &[f32], n: usize) -> Vec<f32> {
-        self.future(&self.net.predict(&self.tokens(x, cond, n), &network_times(t, n), n))
+        self.future(&self.forward(x, t, cond, n).output)
     }
 
     fn predict_pullback(

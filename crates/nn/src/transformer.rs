@@ -249,9 +249,9 @@ fn layer_norm_backward(
 }
 
 /// Sinusoidal features of noise levels `t` in [0, 1] (scaled by 1000, as diffusion models do).
-/// With several times per sample (`t` holds `n x k`), each gets `features / k` of them.
-fn time_features(t: &[f32], n: usize, features: usize) -> Vec<f32> {
-    let half = features / (t.len() / n.max(1)).max(1) / 2;
+/// With `times` times per sample, each gets `features / times` of them.
+fn time_features(t: &[f32], times: usize, features: usize) -> Vec<f32> {
+    let half = features / times / 2;
     t.iter()
         .flat_map(|&t| {
             (0..half)
@@ -324,7 +324,7 @@ impl Transformer {
         assert!(times >= 1 && t.len() == n * times, "the same number of noise levels for every sample");
         assert!(c.time_features.is_multiple_of(2 * times), "time_features must split evenly between the times");
         let s = &self.slots;
-        let tf = time_features(t, n, c.time_features);
+        let tf = time_features(t, times, c.time_features);
         let temb = dense::forward(&tf, n, self.p(&s.time.0), self.p(&s.time.1), c.time_features);
         let mut h = dense::forward(x, rows, self.p(&s.input.0), self.p(&s.input.1), c.token_dim);
         let pos = self.p(&s.pos);
