@@ -39,6 +39,15 @@ pub struct Common {
     /// the denoiser) or cost-only.
     #[arg(long, value_parser = parse_gradient, default_value = "through-network")]
     gradient: Gradient,
+    /// Solver steps that apply guidance, `start:end` (default: all but the last quarter).
+    #[arg(long, value_parser = parse_interval)]
+    guidance_interval: Option<(usize, usize)>,
+}
+
+/// `start:end` with start < end: the solver steps guidance acts on.
+pub(crate) fn parse_interval(text: &str) -> Result<(usize, usize), String> {
+    let parsed = text.split_once(':').and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)));
+    parsed.filter(|(a, b)| a < b).ok_or_else(|| format!("'{text}': use start:end with start < end"))
 }
 
 /// `through-network` or `cost-only`.
@@ -49,7 +58,8 @@ pub(crate) fn parse_gradient(text: &str) -> Result<Gradient, String> {
 impl Common {
     /// Settings for a programmatic run (the pipeline): models as LABEL=DIR.
     pub fn new(models: Vec<String>, out: PathBuf, quick: bool) -> Self {
-        Self { models, out, quick, trials: None, seed: 0, execute: 1, clip: None, gradient: Gradient::default() }
+        let gradient = Gradient::default();
+        Self { models, out, quick, trials: None, seed: 0, execute: 1, clip: None, gradient, guidance_interval: None }
     }
 }
 
@@ -193,6 +203,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         seed: common.seed,
         execute: common.execute,
         gradient: common.gradient,
+        guidance_steps: common.guidance_interval,
         progress: &with_progress,
     };
     lib(match &cmd {

@@ -56,8 +56,8 @@ pub struct RunArgs {
     #[arg(long, value_parser = crate::eval::parse_gradient, default_value = "through-network")]
     pub gradient: Gradient,
     /// Solver steps that apply guidance, `start:end` (default: all but the last quarter).
-    #[arg(long)]
-    pub guidance_interval: Option<String>,
+    #[arg(long, value_parser = crate::eval::parse_interval)]
+    pub guidance_interval: Option<(usize, usize)>,
     #[arg(long, default_value_t = 10.0)]
     pub seconds: f64,
     /// Actions of each sampled trajectory to execute before sampling again (1 = the paper's
@@ -138,22 +138,14 @@ impl RunArgs {
     }
 
     pub fn control(&self) -> Result<ControlConfig> {
-        let guidance_steps = match &self.guidance_interval {
-            None => None,
-            Some(text) => {
-                let (a, b) = text.split_once(':').context("--guidance-interval: use start:end")?;
-                let (a, b): (usize, usize) = (a.parse()?, b.parse()?);
-                if a >= b || b > self.nfe {
-                    bail!("--guidance-interval {text}: need start < end <= nfe ({})", self.nfe);
-                }
-                Some((a, b))
-            }
-        };
+        if let Some((_, end)) = self.guidance_interval.filter(|&(_, end)| end > self.nfe) {
+            bail!("--guidance-interval: end {end} is past the last solver step (nfe {})", self.nfe);
+        }
         Ok(ControlConfig {
             nfe: self.nfe,
             guidance_scale: self.guidance_scale,
             gradient: self.gradient,
-            guidance_steps,
+            guidance_steps: self.guidance_interval,
             seconds: self.seconds,
             execute: self.execute,
             paced: self.paced,

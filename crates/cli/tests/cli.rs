@@ -131,6 +131,14 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     );
     let text = ok(dir, &["eval", "joystick", "--model", "fm=fm", "--scales", "0,10", "--trials", "1", "-o", "eval"]);
     assert!(text.contains("velocity RMSE") && dir.join("eval/joystick.png").exists(), "{text}");
+    // Guiding the last solver step too is another point: measured anew and said in the report.
+    let last = ["eval", "joystick", "--model", "fm=fm", "--scales", "10", "--trials", "1", "-o", "eval"];
+    let text = ok(dir, &[&last[..], &["--guidance-interval", "0:5"]].concat());
+    assert!(!text.contains("reusing"), "a stored result answered another guidance interval: {text}");
+    let report = std::fs::read_to_string(dir.join("eval/report.md")).unwrap();
+    assert!(report.contains("Guidance on solver steps 0 to 4 of 5."), "{report}");
+    let (refused, text) = flowmimic(dir, &[&last[..], &["--guidance-interval", "0:9"]].concat());
+    assert!(!refused && text.contains("need start < end <= NFE (5)"), "{text}");
     let (refused, text) = flowmimic(dir, &["run", "--model", "fm", "--task", "reach", "--target", "1,NaN,1"]);
     assert!(!refused && text.contains("NaN"), "{text}");
     let (refused, text) = flowmimic(dir, &["run", "--model", "fm", "--task", "joystick", "--schedule", "3:9,0,0"]);

@@ -36,6 +36,8 @@ pub struct Study<'a> {
     /// Actions executed per sampled trajectory.
     pub execute: usize,
     pub gradient: Gradient,
+    /// Guided solver steps `start..end` (`None`: all but the last quarter).
+    pub guidance_steps: Option<(usize, usize)>,
     pub progress: &'a WithProgress<'a>,
 }
 
@@ -50,7 +52,8 @@ impl Study<'_> {
     }
 
     fn point(&self, nfe: usize, scale: f32) -> Point {
-        Point { nfe, scale, execute: self.execute, seed: self.seed, gradient: self.gradient }
+        let guidance_steps = self.guidance_steps;
+        Point { nfe, scale, execute: self.execute, seed: self.seed, gradient: self.gradient, guidance_steps }
     }
 
     fn by_nfe(&self, nfe: &[usize]) -> Vec<Point> {
@@ -78,6 +81,13 @@ impl Study<'_> {
         row: impl Fn(&EvalModel, &Summary) -> String,
         notes: &str,
     ) -> Result<()> {
+        let notes = match self.guidance_steps {
+            Some((a, b)) if a >= b || b > nfe => {
+                return Err(format!("guidance interval {a}:{b}: need start < end <= NFE ({nfe})").into());
+            }
+            Some((a, b)) => format!("{notes} Guidance on solver steps {a} to {} of {nfe}.", b - 1),
+            None => notes.to_string(),
+        };
         let (summaries, table) = sweep(
             exp,
             self.out,
@@ -86,7 +96,7 @@ impl Study<'_> {
             |m, point| (self.progress)(steps, &|report| rows(&m.bench(self.humanoid, self.clip), point, report)),
             row,
         )?;
-        finish(self.out, self.models, (exp.name, exp.title), notes, &summaries, table)
+        finish(self.out, self.models, (exp.name, exp.title), &notes, &summaries, table)
     }
 
     /// Unguided walking under kicks against NFE (paper Fig. 2); `seconds` caps each episode
@@ -384,7 +394,8 @@ impl Study<'_> {
             for (name, task) in &tasks {
                 for gradient in [Gradient::ThroughNetwork, Gradient::CostOnly] {
                     for &scale in scales {
-                        let point = Point { nfe, scale, execute: 1, seed: 0, gradient };
+                        let guidance_steps = self.guidance_steps;
+                        let point = Point { nfe, scale, execute: 1, seed: 0, gradient, guidance_steps };
                         let e = protocols::guidance_effect(&m.bench(self.humanoid, self.clip), task, point, samples)?;
                         let g = serde_json::to_string(&gradient)?;
                         println!(

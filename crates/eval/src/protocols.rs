@@ -32,6 +32,9 @@ pub struct Point {
     pub seed: u64,
     #[serde(default)]
     pub gradient: Gradient,
+    /// Guided solver steps `start..end`; `None`: the controller's default.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub guidance_steps: Option<(usize, usize)>,
 }
 
 impl Bench<'_> {
@@ -47,7 +50,7 @@ impl Bench<'_> {
             nfe: point.nfe,
             guidance_scale: point.scale,
             gradient: point.gradient,
-            guidance_steps: None,
+            guidance_steps: point.guidance_steps,
             seconds,
             execute: point.execute,
             paced: false,
@@ -307,7 +310,7 @@ pub fn guidance_effect(
     let (len, std) = (traj.len(), &bench.model.norm.std[layout.cond_len()..]);
     let grad = |x: &[f32], n: usize| flowmimic_control::costs::batch_guidance_grad(&costs, std, x, n);
     let nfe = point.nfe;
-    let steps = controller::default_guidance_steps(nfe);
+    let steps = point.guidance_steps.unwrap_or(controller::default_guidance_steps(nfe));
     let guidance = TaskGuidance { weight: point.scale, grad: &grad, steps: steps.0..steps.1, gradient: point.gradient };
     let unguided = bench.model.sample(&cond, samples, nfe, None, &mut StdRng::seed_from_u64(point.seed));
     let guided = bench.model.sample(&cond, samples, nfe, Some(&guidance), &mut StdRng::seed_from_u64(point.seed));

@@ -78,7 +78,9 @@ impl Store {
         let h = m.model.layout().spec.horizon;
         let (nfe, w, k, seed) = (point.nfe, point.scale, point.execute, point.seed);
         let g = serde_json::to_string(&point.gradient).expect("json");
-        let inputs = format!("{:x}", Sha256::digest(format!("{}\0{settings}", m.content)));
+        // A non-default guidance interval is a different point; the default keeps older keys.
+        let steps = point.guidance_steps.map(|(a, b)| format!("\0guided steps {a}..{b}")).unwrap_or_default();
+        let inputs = format!("{:x}", Sha256::digest(format!("{}\0{settings}{steps}", m.content)));
         let model = format!("{}@{}", m.label, &inputs[..12]);
         format!("{model},{},{h},{nfe},{w},{},{k},{seed}", m.model.objective.name(), g.trim_matches('"'))
     }
