@@ -43,15 +43,16 @@ struct Settings {
 
 #[derive(Subcommand)]
 enum Command {
-    /// The shipped model walks on a joystick schedule, then reaches with its right hand while
-    /// walking: rollouts, plots and metrics in seconds.
+    /// The shipped guidance model walks on a joystick schedule, then reaches with its right
+    /// hand while walking: rollouts, plots and metrics in seconds.
     Demo {
         /// Model directory.
-        #[arg(long, default_value = "pretrained/models/fm")]
+        #[arg(long, default_value = "pretrained/models/guide")]
         model: PathBuf,
         #[arg(short, long, default_value = "runs/demo")]
         out: PathBuf,
-        #[arg(long, default_value_t = 5)]
+        /// Network evaluations per control step (the guidance model steers best at 2).
+        #[arg(long, default_value_t = 2)]
         nfe: usize,
     },
     /// The whole job on the preset: clips -> PPO experts -> noisy rollouts -> FM and DDPM

@@ -1,8 +1,9 @@
 //! The stepping controller (what `flowmimic play` drives) does exactly what `run` records, and
 //! restarts, pushes and sampler changes behave, with the shipped model.
 
-use flowmimic_control::{ControlConfig, Controller, Task, run};
+use flowmimic_control::{ControlConfig, Controller, JoystickSegment, Task, run};
 use flowmimic_model::{Gradient, TrajectoryModel};
+use flowmimic_sim::state::offset;
 use flowmimic_sim::{Humanoid, NUM_DOFS, SimConfig};
 use std::path::Path;
 
@@ -58,4 +59,45 @@ fn the_controller_steps_as_run_records_and_restarts_and_pushes() {
     assert_eq!(controller.config(), &config);
     controller.set_config(ControlConfig { nfe: 1, ..config.clone() }).unwrap();
     assert!(controller.step(&tasks, 1.0).is_ok());
+}
+
+/// What guidance does to the humanoid, not to the model's output: the shipped guidance model,
+/// told to walk backward after 2 s of forward walking, comes to a stop where it walks on at its
+/// own pace unguided (measured here: 0.93 against 0.08 m/s at w 40; the README has the
+/// protocol's numbers).
+#[test]
+fn the_shipped_guidance_model_walks_backward_when_the_joystick_says_so() {
+    let h = Humanoid::new(SimConfig::default()).unwrap();
+    let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models/guide"));
+    let model = TrajectoryModel::load(dir).unwrap();
+    let clip = flowmimic_motion::straight_walk(&h).unwrap();
+    let segment = |vx| JoystickSegment { seconds: 2.0, vx, vy: 0.0, yaw_rate: 0.0 };
+    let tasks = vec![Task { joystick: vec![segment(1.0), segment(-0.5)], ..Task::walk() }; 4];
+    let forward_speed = |scale: f32| {
+        let config = ControlConfig {
+            nfe: 2,
+            guidance_scale: scale,
+            gradient: Gradient::ThroughNetwork,
+            guidance_steps: None,
+            seconds: 4.0,
+            execute: 1,
+            paced: false,
+            seed: 0,
+            kick_every: 0.0,
+            kick_max: 0.0,
+        };
+        let r = run(&model, &h, &clip, tasks.clone(), &config, "guide", |_| {}).unwrap();
+        let standing: Vec<usize> = (0..4).filter(|&e| !r.fell(e)).collect();
+        assert!(standing.len() >= 3, "{} of 4 stand at w {scale}", standing.len());
+        // The backward segment's last 1.3 s, of those standing.
+        let speeds: Vec<f32> = standing
+            .iter()
+            .flat_map(|&e| (80..r.steps).map(move |k| (e, k)))
+            .map(|(e, k)| r.state(e, k)[offset::ROOT_VEL])
+            .collect();
+        speeds.iter().sum::<f32>() / speeds.len().max(1) as f32
+    };
+    let (unguided, guided) = (forward_speed(0.0), forward_speed(40.0));
+    eprintln!("forward speed asked -0.5 m/s: unguided {unguided:.2}, w 40 {guided:.2}");
+    assert!(guided < unguided - 0.4 && guided < 0.25, "unguided {unguided:.2} m/s, w 40 {guided:.2} m/s");
 }
