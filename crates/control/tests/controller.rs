@@ -1,5 +1,6 @@
 //! The stepping controller (what `flowmimic play` drives) does exactly what `run` records, and
-//! restarts, pushes and sampler changes behave, with the shipped model.
+//! restarts, pushes and sampler changes behave, with the shipped model; and guidance changes what
+//! the humanoid does.
 
 use flowmimic_control::{ControlConfig, Controller, JoystickSegment, Task, run};
 use flowmimic_model::{Gradient, TrajectoryModel};
@@ -66,7 +67,7 @@ fn the_controller_steps_as_run_records_and_restarts_and_pushes() {
 /// own pace unguided (measured here: 0.93 against 0.08 m/s at w 40; the README has the
 /// protocol's numbers).
 #[test]
-fn the_shipped_guidance_model_walks_backward_when_the_joystick_says_so() {
+fn the_shipped_guidance_model_stops_when_the_joystick_says_walk_backward() {
     let h = Humanoid::new(SimConfig::default()).unwrap();
     let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models/guide"));
     let model = TrajectoryModel::load(dir).unwrap();
