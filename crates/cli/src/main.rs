@@ -146,17 +146,17 @@ enum Command {
     /// serves a page on 127.0.0.1 (WASD or arrows walk, Q/E turn, a gamepad's sticks do the same;
     /// click the ground for a waypoint; place a hand target; push, reset, record). Ctrl-C stops it.
     Play {
-        /// Model directory (`flowmimic train` writes it).
-        #[arg(long, default_value = "pretrained/models/fm")]
+        /// Model directory (`flowmimic train` writes it; default: the shipped guidance model).
+        #[arg(long, default_value = "pretrained/models/guide")]
         model: PathBuf,
         /// Port on 127.0.0.1 (0: any free one).
         #[arg(long, default_value_t = 8000)]
         port: u16,
         /// Network evaluations per control step at the start (the page changes it).
-        #[arg(long, default_value_t = 5)]
+        #[arg(long, default_value_t = 2)]
         nfe: usize,
         /// Guidance scale at the start (the page changes it).
-        #[arg(long, default_value_t = 10.0)]
+        #[arg(long, default_value_t = 40.0)]
         guidance_scale: f32,
         /// Start from this clip's frames (default: the generated straight walk).
         #[arg(long)]
