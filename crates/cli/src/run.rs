@@ -138,9 +138,6 @@ impl RunArgs {
     }
 
     pub fn control(&self) -> Result<ControlConfig> {
-        if let Some((_, end)) = self.guidance_interval.filter(|&(_, end)| end > self.nfe) {
-            bail!("--guidance-interval: end {end} is past the last solver step (nfe {})", self.nfe);
-        }
         Ok(ControlConfig {
             nfe: self.nfe,
             guidance_scale: self.guidance_scale,

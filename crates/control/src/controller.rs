@@ -123,7 +123,16 @@ fn check_sampler(config: &ControlConfig) -> Result<(), ControlError> {
     if !config.guidance_scale.is_finite() || config.guidance_scale < 0.0 {
         return Err(ControlError::BadCommand { what: "guidance scale", value: f64::from(config.guidance_scale) });
     }
-    Ok(())
+    config.guidance_steps.map_or(Ok(()), |steps| check_guidance_steps(steps, config.nfe))
+}
+
+/// Refuses guided solver steps `start..end` that are empty or run past the sampler's `nfe`.
+pub fn check_guidance_steps((start, end): (usize, usize), nfe: usize) -> Result<(), ControlError> {
+    if start < end && end <= nfe {
+        Ok(())
+    } else {
+        Err(ControlError::Sampler(format!("guidance interval {start}:{end}: need start < end <= NFE ({nfe})")))
+    }
 }
 
 impl<'m> Controller<'m> {

@@ -284,6 +284,8 @@ pub fn guidance_effect(
     use flowmimic_control::{Cost, History, Layout};
     use flowmimic_geom::CharFrame;
     use flowmimic_model::TaskGuidance;
+    let steps = point.guidance_steps.unwrap_or(controller::default_guidance_steps(point.nfe));
+    controller::check_guidance_steps(steps, point.nfe)?;
     let layout = bench.model.layout();
     let traj = Layout { horizon: layout.spec.horizon };
     let (mut cond, mut costs) = (Vec::new(), Vec::new());
@@ -310,7 +312,6 @@ pub fn guidance_effect(
     let (len, std) = (traj.len(), &bench.model.norm.std[layout.cond_len()..]);
     let grad = |x: &[f32], n: usize| flowmimic_control::costs::batch_guidance_grad(&costs, std, x, n);
     let nfe = point.nfe;
-    let steps = point.guidance_steps.unwrap_or(controller::default_guidance_steps(nfe));
     let guidance = TaskGuidance { weight: point.scale, grad: &grad, steps: steps.0..steps.1, gradient: point.gradient };
     let unguided = bench.model.sample(&cond, samples, nfe, None, &mut StdRng::seed_from_u64(point.seed));
     let guided = bench.model.sample(&cond, samples, nfe, Some(&guidance), &mut StdRng::seed_from_u64(point.seed));
