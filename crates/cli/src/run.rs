@@ -47,7 +47,7 @@ pub struct RunArgs {
     #[arg(long, default_value_t = 5)]
     pub nfe: usize,
     /// Guidance scale w (v' = v - w grad G); each task's gradient is scaled to its error
-    /// (m/s, rad, m) in the model's normalised coordinates, so w means the same for every
+    /// (m/s, rad/s, m) in the model's normalised coordinates, so w means the same for every
     /// task; 0 for none.
     #[arg(long, default_value_t = 10.0)]
     pub guidance_scale: f32,

@@ -4,8 +4,8 @@
 //! gradient onto its normalised coordinates). Gradients are analytic; the tests check each
 //! against finite differences.
 //!
-//! Each cost also reports its error in its own unit (m/s, rad, m: the root mean square over
-//! the predicted steps), so that [`Sum::guidance_grad`] can make the guidance scale mean the same
+//! Each cost also reports its error in its own unit (m/s, rad/s, m, over the predicted steps),
+//! so that [`Sum::guidance_grad`] can make the guidance scale mean the same
 //! for every task and model: each term's gradient is scaled to a length, in the model's
 //! normalised coordinates, equal to its error.
 
@@ -127,8 +127,13 @@ impl Cost for Heading {
         }
     }
 
+    /// In rad/s, the joystick's unit: the yaw-rate error whose heading errors `e k dt` have this
+    /// cost. (The heading error itself is small by construction: a 0.6 rad/s turn is 0.3 rad
+    /// over 16 steps, so in rad the turn pulled a third as hard as a 0.6 m/s speed error.)
     fn error(&self, tau: &[f32]) -> f32 {
-        (2.0 * self.cost(tau) / self.layout.horizon as f32).sqrt()
+        let dt = 1.0 / CONTROL_HZ as f32;
+        let times: f32 = (1..=self.layout.horizon).map(|k| (k as f32 * dt).powi(2)).sum();
+        (2.0 * self.cost(tau) / times).sqrt()
     }
 }
 
@@ -287,7 +292,7 @@ impl Sum {
     /// scaled so that its length in the model's normalised coordinates (`std`, the standard
     /// deviation of each trajectory entry: a normalised entry is `x / std`, so its gradient is
     /// `std * dG/dx`) equals the term's error, times the term's weight. The guidance scale `w`
-    /// then means the same for every task and model: a 1 m/s joystick error, a 1 rad heading
+    /// then means the same for every task and model: a 1 m/s joystick error, a 1 rad/s turn
     /// error and a hand 1 m from its target pull equally hard.
     pub fn guidance_grad(&self, tau: &[f32], std: &[f32], grad: &mut [f32]) {
         let mut part = vec![0.0; grad.len()];

@@ -117,6 +117,8 @@ fn turning_is_asked_step_by_step_and_far_targets_still_pull() {
     // The heading gradient is spread over the steps: none holds more than a third of it (a
     // rate on successive differences put it all on the last state).
     let still = vec![0.0f32; layout.len()];
+    // Its error is in the command's unit: a walker that does not turn misses by 0.6 rad/s.
+    assert!((heading.error(&still) - 0.6).abs() < 1e-5, "{}", heading.error(&still));
     let mut grad = vec![0.0; layout.len()];
     heading.add_grad(&still, &mut grad);
     let per_step: Vec<f32> = (1..=16).map(|k| grad[layout.root_rot(k) + 2].abs()).collect();
