@@ -14,7 +14,7 @@ use std::sync::Arc;
 
 /// Guidance scales of the demo: the joystick's and the reach's (see the README's Results for
 /// the sweeps they come from).
-const JOYSTICK_SCALE: f32 = 40.0;
+const JOYSTICK_SCALE: f32 = 30.0;
 const REACH_SCALE: f32 = 10.0;
 
 pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -> Result<()> {

@@ -156,7 +156,7 @@ enum Command {
         #[arg(long, default_value_t = 2)]
         nfe: usize,
         /// Guidance scale at the start (the page changes it).
-        #[arg(long, default_value_t = 40.0)]
+        #[arg(long, default_value_t = 30.0)]
         guidance_scale: f32,
         /// Start from this clip's frames (default: the generated straight walk).
         #[arg(long)]
