@@ -192,12 +192,18 @@ impl Graph {
 
 /// The trajectory model's denoiser as an ONNX graph (see the crate's documentation).
 pub fn trajectory_model(model: &TrajectoryModel) -> Result<Vec<u8>, ExportError> {
-    // The graph takes one noise level per sample; MeanFlow's network takes two.
+    // The graph takes one noise level per sample; MeanFlow's network takes two. Its output is
+    // the network's own, which a user's Euler loop reads as a velocity.
     match model.objective {
-        Objective::Fm { .. } | Objective::Ddpm { .. } => {}
         Objective::MeanFlow { .. } => {
             return Err(ExportError::Unsupported("MeanFlow models (two times per sample) do not export yet".into()));
         }
+        Objective::Fm { prediction: flowmimic_model::fm::Prediction::Sample, .. } => {
+            return Err(ExportError::Unsupported(
+                "Flow Matching models that predict the clean sample do not export yet".into(),
+            ));
+        }
+        Objective::Fm { .. } | Objective::Ddpm { .. } => {}
     }
     let layout = model.layout();
     let net = &model.net.net;

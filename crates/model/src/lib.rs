@@ -4,7 +4,9 @@
 //! - [`Network`]: anything that maps a noised batch, its noise level and a conditioning batch
 //!   to a prediction (the Transformer over trajectory tokens, or a small MLP in tests);
 //! - [`fm`]: Flow Matching on the linear path `x_s = (1 - s) x_0 + s x_1` from noise (s = 0)
-//!   to data (s = 1), velocity regression, Euler and Heun solvers at any NFE;
+//!   to data (s = 1), velocity regression, Euler and Heun solvers at any NFE; the network may
+//!   predict the clean sample instead, read as a velocity ([`fm::CleanSample`]), for FM and
+//!   MeanFlow alike;
 //! - [`meanflow`]: MeanFlow on the same path, regressing the average velocity over an interval,
 //!   so that one network evaluation can jump from noise to data (NFE 1);
 //! - [`ddpm`]: the DDPM baseline (epsilon prediction, cosine schedule), respaced to any NFE in

@@ -50,6 +50,9 @@ pub struct TrainConfig {
     pub fm_solver: fm::Solver,
     /// MeanFlow's share of training samples with an interval (the rest regress FM's velocity).
     pub meanflow_share: f32,
+    /// What Flow Matching's and MeanFlow's network predicts: `velocity` (the paper) or
+    /// `sample` (the clean sample, read as a velocity; see `fm::Prediction`).
+    pub flow_prediction: fm::Prediction,
     /// DDPM's training steps T.
     pub ddpm_steps: usize,
     /// What DDPM's network predicts: `sample` (x_0) or `epsilon`.
@@ -77,6 +80,7 @@ impl Default for TrainConfig {
             fm_time: fm::TimeDistribution::Uniform,
             fm_solver: fm::Solver::Euler,
             meanflow_share: 0.5,
+            flow_prediction: fm::Prediction::Velocity,
             ddpm_steps: 100,
             ddpm_prediction: ddpm::Prediction::Sample,
             ddpm_clip: 6.0,
@@ -109,8 +113,8 @@ impl TrainConfig {
 
     pub fn objective(&self, name: &str) -> Result<Objective, ModelError> {
         match name {
-            "fm" => Ok(Objective::Fm { time: self.fm_time, solver: self.fm_solver }),
-            "meanflow" => Ok(Objective::MeanFlow { share: self.meanflow_share }),
+            "fm" => Ok(Objective::Fm { time: self.fm_time, solver: self.fm_solver, prediction: self.flow_prediction }),
+            "meanflow" => Ok(Objective::MeanFlow { share: self.meanflow_share, prediction: self.flow_prediction }),
             "ddpm" => {
                 Ok(Objective::Ddpm { steps: self.ddpm_steps, prediction: self.ddpm_prediction, clip: self.ddpm_clip })
             }
@@ -304,13 +308,21 @@ impl Trainer {
 
     fn training_batch(&self, clean: &[f32], cond: &[f32], rng: &mut StdRng) -> TrainingBatch {
         let dim = self.model.layout().future_len();
-        match self.model.objective {
+        let net = &self.model.net;
+        let batch = match self.model.objective {
             Objective::Fm { time, .. } => fm::training_batch(clean, dim, time, rng),
-            Objective::MeanFlow { share } => meanflow::training_batch(&self.model.net, cond, clean, dim, share, rng),
+            Objective::MeanFlow { share, prediction: fm::Prediction::Velocity } => {
+                meanflow::training_batch(net, cond, clean, dim, share, rng)
+            }
+            // The target differentiates the velocity the network stands for.
+            Objective::MeanFlow { share, prediction: fm::Prediction::Sample } => {
+                meanflow::training_batch(&fm::CleanSample(net), cond, clean, dim, share, rng)
+            }
             Objective::Ddpm { steps, prediction, .. } => {
                 ddpm::training_batch(&ddpm::Schedule::cosine(steps), prediction, clean, dim, rng)
             }
-        }
+        };
+        if self.model.objective.predicts_clean_flow() { fm::clean_sample_target(batch, dim) } else { batch }
     }
 
     /// Mean squared error of the prediction on `rows` of a side, and the parameter gradient

@@ -190,11 +190,22 @@ impl ModelConfig {
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Objective {
-    /// Flow Matching: velocity regression, Euler ODE sampler (or Heun).
-    Fm { time: fm::TimeDistribution, solver: Solver },
+    /// Flow Matching: velocity regression (the network predicting the velocity or the clean
+    /// sample), Euler ODE sampler (or Heun).
+    Fm {
+        time: fm::TimeDistribution,
+        solver: Solver,
+        /// Files written before the choice existed predicted the velocity.
+        #[serde(default)]
+        prediction: fm::Prediction,
+    },
     /// MeanFlow: average velocity over an interval, regressed on a share `share` of samples
     /// with an interval (the rest plain FM), sampled in NFE equal jumps.
-    MeanFlow { share: f32 },
+    MeanFlow {
+        share: f32,
+        #[serde(default)]
+        prediction: fm::Prediction,
+    },
     /// DDPM on a cosine schedule of `steps` predicting `prediction`, ancestral sampling
     /// respaced to the NFE; clean predictions clipped to `clip` standard deviations.
     Ddpm {
@@ -220,7 +231,7 @@ impl Objective {
             {
                 Err(format!("DDPM needs 1-100000 steps and a positive clip, not {steps} and {clip}"))
             }
-            Objective::MeanFlow { share } if !(0.0..=1.0).contains(&share) => {
+            Objective::MeanFlow { share, .. } if !(0.0..=1.0).contains(&share) => {
                 Err(format!("MeanFlow's share of intervals must be in [0, 1], not {share}"))
             }
             _ => Ok(()),
@@ -233,6 +244,15 @@ impl Objective {
             Objective::MeanFlow { .. } => "meanflow",
             Objective::Ddpm { .. } => "ddpm",
         }
+    }
+
+    /// Whether a flow network predicts the clean sample (see [`fm::CleanSample`]).
+    pub fn predicts_clean_flow(&self) -> bool {
+        matches!(
+            self,
+            Objective::Fm { prediction: fm::Prediction::Sample, .. }
+                | Objective::MeanFlow { prediction: fm::Prediction::Sample, .. }
+        )
     }
 
     /// Noise levels the network takes per sample.
@@ -459,9 +479,11 @@ impl TrajectoryModel {
             gradient: g.gradient,
         });
         let noise: Vec<f32> = (0..n * f).map(|_| StandardNormal.sample(rng)).collect();
+        let clean = fm::CleanSample(&self.net);
+        let flow: &dyn Network = if self.objective.predicts_clean_flow() { &clean } else { &self.net };
         let mut x = match self.objective {
-            Objective::Fm { solver, .. } => fm::sample(&self.net, &cond, noise, n, nfe, solver, inner.as_ref()),
-            Objective::MeanFlow { .. } => meanflow::sample(&self.net, &cond, noise, n, nfe, inner.as_ref()),
+            Objective::Fm { solver, .. } => fm::sample(flow, &cond, noise, n, nfe, solver, inner.as_ref()),
+            Objective::MeanFlow { .. } => meanflow::sample(flow, &cond, noise, n, nfe, inner.as_ref()),
             Objective::Ddpm { steps, prediction, clip } => {
                 let schedule = ddpm::Schedule::cosine(steps);
                 ddpm::sample(&self.net, &schedule, prediction, &cond, noise, n, nfe, clip, inner.as_ref(), rng)
@@ -530,12 +552,16 @@ mod tests {
     #[test]
     fn guidance_through_the_network_is_the_gradient_of_the_cost_of_the_clean_estimate() {
         for pairing in [Pairing::StateAction, Pairing::ActionState, Pairing::StateActionState] {
-            guidance_matches_finite_differences(&small_net(pairing));
+            let net = small_net(pairing);
+            guidance_matches_finite_differences(&net, &net.layout);
         }
+        // A network predicting the clean sample, read as a velocity.
+        let net = small_net(Pairing::StateAction);
+        guidance_matches_finite_differences(&crate::fm::CleanSample(&net), &net.layout);
     }
 
-    fn guidance_matches_finite_differences(net: &TrajectoryNet) {
-        let (n, f, c) = (2, net.layout.future_len(), net.layout.cond_len());
+    fn guidance_matches_finite_differences(net: &dyn Network, layout: &TokenLayout) {
+        let (n, f, c) = (2, layout.future_len(), layout.cond_len());
         let x: Vec<f32> = (0..n * f).map(|i| (i as f32 * 0.7).sin()).collect();
         let cond: Vec<f32> = (0..n * c).map(|i| (i as f32 * 0.3).cos()).collect();
         let t = vec![0.4; n];
