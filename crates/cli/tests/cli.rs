@@ -56,6 +56,11 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     assert!(!refused && text.contains("--resume"), "{text}");
     let (refused, text) = flowmimic(dir, &["train", "data", "--objective", "ddpm", "-o", "fm-part", "--resume"]);
     assert!(!refused && text.contains("objective fm"), "{text}");
+    // So does the same objective with another setting (here, what the network predicts).
+    std::fs::write(dir.join("clean.toml"), "[train]\nflow_prediction = \"sample\"\n").unwrap();
+    let (refused, text) =
+        flowmimic(dir, &["--config", "clean.toml", "train", "data", "--objective", "fm", "-o", "fm-part", "--resume"]);
+    assert!(!refused && text.contains("prediction: Sample"), "{text}");
     ok(dir, &["train", "data", "--objective", "fm", "-o", "fm-part", "--resume"]);
     let tensors = |p: &str| tensor_bytes(&dir.join(p));
     assert!(tensors("fm/model.safetensors") == tensors("fm-part/model.safetensors"), "resume is not exact");
@@ -65,13 +70,18 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     std::fs::write(dir.join("longer.toml"), "[model]\nhorizon = 3\n").unwrap();
     let (refused, text) = flowmimic(dir, &["--config", "longer.toml", "train", "data", "-o", "fm", "--resume"]);
     assert!(!refused && text.contains("checkpoint.safetensors") && text.contains("horizon: 3"), "{text}");
-    // MeanFlow trains with its loss falling, and on tokens of state, action and next state.
-    std::fs::write(dir.join("sas.toml"), "[model]\npairing = \"state-action-state\"\n").unwrap();
+    // MeanFlow trains with its loss falling, on tokens of state, action and next state, with a
+    // network that predicts the clean sample (the shipped one-step model's settings).
+    std::fs::write(
+        dir.join("sas.toml"),
+        "[model]\npairing = \"state-action-state\"\n[train]\nflow_prediction = \"sample\"\n",
+    )
+    .unwrap();
     let meanflow = ok(dir, &["--config", "sas.toml", "train", "data", "--objective", "meanflow", "-o", "meanflow"]);
     assert!(meanflow.contains("MEANFLOW Transformer") && meanflow.contains("tokens of 399:"), "{meanflow}");
     let log = std::fs::read_to_string(dir.join("meanflow/log.csv")).unwrap();
     let losses: Vec<f64> = log.lines().skip(1).map(|l| l.split(',').nth(1).unwrap().parse().unwrap()).collect();
-    assert!(losses[2] < 0.95 * losses[0], "MeanFlow losses {losses:?}"); // measured 1.97 -> 1.79
+    assert!(losses[2] < 0.95 * losses[0], "MeanFlow losses {losses:?}");
     let (refused, text) = flowmimic(dir, &["export", "meanflow", "-o", "meanflow.onnx"]);
     assert!(!refused && text.contains("MeanFlow"), "{text}");
     // Every objective drives the humanoid (MeanFlow in one step); the rollout holds every step.

@@ -264,8 +264,9 @@ impl Trainer {
         if meta.config != ours.config || meta.layout != ours.layout {
             return Err(differs("model", format!("{:?}", meta.config), format!("{:?}", ours.config)).into());
         }
-        if meta.objective.name() != ours.objective.name() {
-            return Err(differs("objective", meta.objective.name().into(), ours.objective.name().into()).into());
+        if meta.objective != ours.objective {
+            let describe = |o: &Objective| format!("{} ({o:?})", o.name());
+            return Err(differs("objective", describe(&meta.objective), describe(&ours.objective)).into());
         }
         if meta.dataset != ours.dataset {
             return Err(file.error("was trained on another dataset (shard checksums differ)").into());
