@@ -33,11 +33,7 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
         kick_max: 0.0,
     };
     let name = model_dir.display().to_string();
-    eprintln!(
-        "{} model from {name} (H {}), NFE {nfe}",
-        model.objective.name().to_uppercase(),
-        model.layout().spec.horizon
-    );
+    eprintln!("{} model from {name} (H {}), NFE {nfe}", model.objective.label(), model.layout().spec.horizon);
 
     // 1. Joystick: forward, backward, turn left, turn right, 3 s each.
     let task = Task::joystick_eval();

@@ -75,7 +75,7 @@ pub fn train(
     let net = &trainer.model.net.net;
     eprintln!(
         "{} Transformer: {} layers, {} heads, d {}, ff {}, {} tokens of {}: {} parameters ({:.1} MFLOP per sample)",
-        objective.name().to_uppercase(),
+        objective.label(),
         model.layers,
         model.heads,
         model.d_model,

@@ -178,7 +178,7 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     let out = args.out.clone().unwrap_or_else(|| PathBuf::from("runs/run").join(format!("{name}.rollout.safetensors")));
     eprintln!(
         "{} model (H {}), NFE {}, guidance {} on steps {:?}, task {name}, {} env(s), {} s",
-        model.objective.name().to_uppercase(),
+        model.objective.label(),
         model.layout().spec.horizon,
         control.nfe,
         control.guidance_scale,

@@ -78,7 +78,10 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     )
     .unwrap();
     let meanflow = ok(dir, &["--config", "sas.toml", "train", "data", "--objective", "meanflow", "-o", "meanflow"]);
-    assert!(meanflow.contains("MEANFLOW Transformer") && meanflow.contains("tokens of 399:"), "{meanflow}");
+    assert!(
+        meanflow.contains("MEANFLOW (clean sample) Transformer") && meanflow.contains("tokens of 399:"),
+        "{meanflow}"
+    );
     let log = std::fs::read_to_string(dir.join("meanflow/log.csv")).unwrap();
     let losses: Vec<f64> = log.lines().skip(1).map(|l| l.split(',').nth(1).unwrap().parse().unwrap()).collect();
     assert!(losses[2] < 0.95 * losses[0], "MeanFlow losses {losses:?}");

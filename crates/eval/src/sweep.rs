@@ -199,7 +199,7 @@ pub fn finish(
                 "`{}` = `{}` ({}, N {} H {}, d {} x {} layers, {} heads)",
                 m.label,
                 m.dir.display(),
-                m.model.objective.name().to_uppercase(),
+                m.model.objective.label(),
                 c.history,
                 c.horizon,
                 c.d_model,

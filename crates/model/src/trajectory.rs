@@ -246,6 +246,17 @@ impl Objective {
         }
     }
 
+    /// The objective for people: its name in capitals, and what the network predicts where it
+    /// is not the default (the clean sample for FM and MeanFlow, the noise for DDPM).
+    pub fn label(&self) -> String {
+        let name = self.name().to_uppercase();
+        match self {
+            _ if self.predicts_clean_flow() => format!("{name} (clean sample)"),
+            Objective::Ddpm { prediction: ddpm::Prediction::Epsilon, .. } => format!("{name} (epsilon)"),
+            _ => name,
+        }
+    }
+
     /// Whether a flow network predicts the clean sample (see [`fm::CleanSample`]).
     pub fn predicts_clean_flow(&self) -> bool {
         matches!(
