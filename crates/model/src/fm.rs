@@ -52,16 +52,18 @@ fn remaining(t: &[f32], n: usize) -> Vec<f32> {
 /// one that predicts the velocity `(x_hat - x_s) / (1 - s)`.
 pub struct CleanSample<'a>(pub &'a dyn Network);
 
+/// The velocity `(x_hat - x) / c` of each row (`c`: each row's `1 - s`).
+fn velocity(x_hat: &[f32], x: &[f32], c: &[f32], dim: usize) -> Vec<f32> {
+    x_hat.iter().zip(x).enumerate().map(|(j, (d, x))| (d - x) / c[j / dim]).collect()
+}
+
 impl Network for CleanSample<'_> {
     fn dim(&self) -> usize {
         self.0.dim()
     }
 
     fn predict(&self, x: &[f32], t: &[f32], cond: &[f32], n: usize) -> Vec<f32> {
-        let dim = self.dim();
-        let c = remaining(t, n);
-        let x_hat = self.0.predict(x, t, cond, n);
-        x_hat.iter().zip(x).enumerate().map(|(j, (d, x))| (d - x) / c[j / dim]).collect()
+        velocity(&self.0.predict(x, t, cond, n), x, &remaining(t, n), self.dim())
     }
 
     /// `v = (x_hat - x) / c`, so `(dv/dx)^T u = (dx_hat/dx)^T (u / c) - u / c`.
@@ -77,7 +79,7 @@ impl Network for CleanSample<'_> {
         let c = remaining(t, n);
         let (mut v, mut u_over_c) = (Vec::new(), Vec::new());
         let (_, pulled) = self.0.predict_pullback(x, t, cond, n, &mut |x_hat| {
-            v = x_hat.iter().zip(x).enumerate().map(|(j, (d, x))| (d - x) / c[j / dim]).collect();
+            v = velocity(x_hat, x, &c, dim);
             u_over_c = cotangent(&v).iter().enumerate().map(|(j, u)| u / c[j / dim]).collect();
             u_over_c.clone()
         });

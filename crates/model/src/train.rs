@@ -309,15 +309,11 @@ impl Trainer {
 
     fn training_batch(&self, clean: &[f32], cond: &[f32], rng: &mut StdRng) -> TrainingBatch {
         let dim = self.model.layout().future_len();
-        let net = &self.model.net;
         let batch = match self.model.objective {
             Objective::Fm { time, .. } => fm::training_batch(clean, dim, time, rng),
-            Objective::MeanFlow { share, prediction: fm::Prediction::Velocity } => {
-                meanflow::training_batch(net, cond, clean, dim, share, rng)
-            }
             // The target differentiates the velocity the network stands for.
-            Objective::MeanFlow { share, prediction: fm::Prediction::Sample } => {
-                meanflow::training_batch(&fm::CleanSample(net), cond, clean, dim, share, rng)
+            Objective::MeanFlow { share, .. } => {
+                self.model.with_flow_net(|net| meanflow::training_batch(net, cond, clean, dim, share, rng))
             }
             Objective::Ddpm { steps, prediction, .. } => {
                 ddpm::training_batch(&ddpm::Schedule::cosine(steps), prediction, clean, dim, rng)

@@ -490,11 +490,13 @@ impl TrajectoryModel {
             gradient: g.gradient,
         });
         let noise: Vec<f32> = (0..n * f).map(|_| StandardNormal.sample(rng)).collect();
-        let clean = fm::CleanSample(&self.net);
-        let flow: &dyn Network = if self.objective.predicts_clean_flow() { &clean } else { &self.net };
         let mut x = match self.objective {
-            Objective::Fm { solver, .. } => fm::sample(flow, &cond, noise, n, nfe, solver, inner.as_ref()),
-            Objective::MeanFlow { .. } => meanflow::sample(flow, &cond, noise, n, nfe, inner.as_ref()),
+            Objective::Fm { solver, .. } => {
+                self.with_flow_net(|net| fm::sample(net, &cond, noise, n, nfe, solver, inner.as_ref()))
+            }
+            Objective::MeanFlow { .. } => {
+                self.with_flow_net(|net| meanflow::sample(net, &cond, noise, n, nfe, inner.as_ref()))
+            }
             Objective::Ddpm { steps, prediction, clip } => {
                 let schedule = ddpm::Schedule::cosine(steps);
                 ddpm::sample(&self.net, &schedule, prediction, &cond, noise, n, nfe, clip, inner.as_ref(), rng)
@@ -502,6 +504,12 @@ impl TrajectoryModel {
         };
         self.norm.denormalise(&mut x, c, f);
         x
+    }
+
+    /// Runs `f` on the network as Flow Matching's and MeanFlow's samplers and MeanFlow's target
+    /// read it: as a velocity, through [`fm::CleanSample`] when it predicts the clean sample.
+    pub(crate) fn with_flow_net<R>(&self, f: impl FnOnce(&dyn Network) -> R) -> R {
+        if self.objective.predicts_clean_flow() { f(&fm::CleanSample(&self.net)) } else { f(&self.net) }
     }
 
     /// Network FLOPs of one sampling call for `n` samples at `nfe`.
