@@ -162,7 +162,8 @@ impl Adam {
 }
 
 /// Measured single-precision matrix-multiply throughput of this machine (all of rayon's
-/// threads, as the dense layers split large products): the median of `repeats` square `size x size` products, GFLOP/s.
+/// threads, as the dense layers split large products): the median of `repeats` square
+/// `size x size` products, GFLOP/s.
 pub fn sgemm_gflops(size: usize, repeats: usize) -> f64 {
     let a: Vec<f32> = (0..size * size).map(|i| (i % 7) as f32 * 0.1).collect();
     let mut c = vec![0.0f32; size * size];
