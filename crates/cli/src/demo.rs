@@ -20,18 +20,7 @@ const REACH_SCALE: f32 = 10.0;
 pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -> Result<()> {
     let model = load_model(model_dir)?;
     let clip = start_clip(humanoid, None)?;
-    let control = |seconds: f64, scale: f32| ControlConfig {
-        nfe,
-        guidance_scale: scale,
-        gradient: Default::default(),
-        guidance_steps: None,
-        seconds,
-        execute: 1,
-        paced: false,
-        seed: 0,
-        kick_every: 0.0,
-        kick_max: 0.0,
-    };
+    let control = |seconds: f64, scale: f32| ControlConfig::new(nfe, scale, seconds);
     let name = model_dir.display().to_string();
     eprintln!("{} model from {name} (H {}), NFE {nfe}", model.objective.label(), model.layout().spec.horizon);
 

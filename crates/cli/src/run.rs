@@ -239,18 +239,7 @@ pub fn play(
 ) -> Result<()> {
     let model = load_model(model_dir)?;
     let clip = start_clip(humanoid, clip)?;
-    let control = ControlConfig {
-        nfe,
-        guidance_scale,
-        gradient: Gradient::ThroughNetwork,
-        guidance_steps: None,
-        seconds: 0.0,
-        execute: 1,
-        paced: true,
-        seed: 0,
-        kick_every: 0.0,
-        kick_max: 0.0,
-    };
+    let control = ControlConfig { paced: true, ..ControlConfig::new(nfe, guidance_scale, 0.0) };
     let model_name = model_dir.display().to_string();
     let session = flowmimic_serve::play::Session::start(
         model,

@@ -45,6 +45,24 @@ pub struct ControlConfig {
 }
 
 impl ControlConfig {
+    /// `nfe` solver steps at guidance scale `guidance_scale` (0: unguided) for `seconds`; the
+    /// rest plain: gradient through the network, the default interval, the paper's receding
+    /// horizon, not paced, seed 0, no kicks.
+    pub fn new(nfe: usize, guidance_scale: f32, seconds: f64) -> Self {
+        Self {
+            nfe,
+            guidance_scale,
+            gradient: Gradient::ThroughNetwork,
+            guidance_steps: None,
+            seconds,
+            execute: 1,
+            paced: false,
+            seed: 0,
+            kick_every: 0.0,
+            kick_max: 0.0,
+        }
+    }
+
     pub fn guidance_steps(&self) -> (usize, usize) {
         self.guidance_steps.unwrap_or(default_guidance_steps(self.nfe))
     }

@@ -3,26 +3,10 @@
 //! the humanoid does; and the one-step model survives kicks in one network call.
 
 use flowmimic_control::{ControlConfig, Controller, JoystickSegment, Task, run};
-use flowmimic_model::{Gradient, TrajectoryModel};
+use flowmimic_model::TrajectoryModel;
 use flowmimic_sim::state::offset;
 use flowmimic_sim::{Humanoid, NUM_DOFS, SimConfig};
 use std::path::Path;
-
-/// Unguided-by-default sampler settings, no kicks, seed 0; tests change what they need.
-fn sampler(nfe: usize, guidance_scale: f32, seconds: f64) -> ControlConfig {
-    ControlConfig {
-        nfe,
-        guidance_scale,
-        gradient: Gradient::ThroughNetwork,
-        guidance_steps: None,
-        seconds,
-        execute: 1,
-        paced: false,
-        seed: 0,
-        kick_every: 0.0,
-        kick_max: 0.0,
-    }
-}
 
 #[test]
 fn the_controller_steps_as_run_records_and_restarts_and_pushes() {
@@ -30,7 +14,7 @@ fn the_controller_steps_as_run_records_and_restarts_and_pushes() {
     let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models/fm"));
     let model = TrajectoryModel::load(dir).unwrap();
     let clip = flowmimic_motion::straight_walk(&h).unwrap();
-    let config = ControlConfig { seed: 3, kick_every: 0.2, kick_max: 0.3, ..sampler(2, 5.0, 0.5) };
+    let config = ControlConfig { seed: 3, kick_every: 0.2, kick_max: 0.3, ..ControlConfig::new(2, 5.0, 0.5) };
     let tasks = vec![Task::joystick_eval(), Task::walk()];
     let rollout = run(&model, &h, &clip, tasks.clone(), &config, "shipped", |_| {}).unwrap();
     let mut controller = Controller::new(&model, &h, &clip, 2, &config).unwrap();
@@ -80,7 +64,7 @@ fn the_shipped_guidance_model_stops_when_the_joystick_says_walk_backward() {
     let segment = |vx| JoystickSegment { seconds: 2.0, vx, vy: 0.0, yaw_rate: 0.0 };
     let tasks = vec![Task { joystick: vec![segment(1.0), segment(-0.5)], ..Task::walk() }; 4];
     let forward_speed = |scale: f32| {
-        let r = run(&model, &h, &clip, tasks.clone(), &sampler(2, scale, 4.0), "guide", |_| {}).unwrap();
+        let r = run(&model, &h, &clip, tasks.clone(), &ControlConfig::new(2, scale, 4.0), "guide", |_| {}).unwrap();
         let standing: Vec<usize> = (0..4).filter(|&e| !r.fell(e)).collect();
         assert!(standing.len() >= 3, "{} of 4 stand at w {scale}", standing.len());
         // The backward segment's last 1.3 s, of those standing.
@@ -108,7 +92,7 @@ fn the_shipped_one_step_model_survives_kicks_in_one_network_call() {
     let mean_survival = |name: &str| {
         let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models")).join(name);
         let model = TrajectoryModel::load(&dir).unwrap();
-        let config = ControlConfig { kick_every: 1.0, kick_max: 0.5, ..sampler(1, 0.0, 30.0) };
+        let config = ControlConfig { kick_every: 1.0, kick_max: 0.5, ..ControlConfig::new(1, 0.0, 30.0) };
         let r = run(&model, &h, &clip, vec![Task::walk(); 8], &config, name, |_| {}).unwrap();
         (0..8).map(|e| r.survived[e] as f64).sum::<f64>() / 8.0
     };
