@@ -96,6 +96,16 @@ pub enum EvalCommand {
         #[arg(long, default_value_t = 5)]
         nfe: usize,
     },
+    /// Walk to a goal 3-4 m away at a bearing within 90 degrees: arrival rate (pelvis within
+    /// 0.5 m), closest approach and time to arrive, against guidance scale.
+    Waypoint {
+        #[command(flatten)]
+        common: Common,
+        #[arg(long, value_delimiter = ',', default_value = "0,10,30")]
+        scales: Vec<f32>,
+        #[arg(long, default_value_t = 5)]
+        nfe: usize,
+    },
     /// Walk to a waypoint and touch a target there: success rate (pelvis within 0.5 m and hand
     /// within 0.15 m at once).
     Compose {
@@ -186,6 +196,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         EvalCommand::Survival { common, .. }
         | EvalCommand::Joystick { common, .. }
         | EvalCommand::Reach { common, .. }
+        | EvalCommand::Waypoint { common, .. }
         | EvalCommand::Compose { common, .. }
         | EvalCommand::Quality { common, .. }
         | EvalCommand::Guidance { common, .. }
@@ -210,6 +221,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         EvalCommand::Survival { nfe, seconds, .. } => study.survival(nfe, *seconds),
         EvalCommand::Joystick { scales, nfe, .. } => study.joystick(scales, *nfe),
         EvalCommand::Reach { scales, nfe, .. } => study.reach(scales, *nfe),
+        EvalCommand::Waypoint { scales, nfe, .. } => study.waypoint(scales, *nfe),
         EvalCommand::Compose { scales, nfe, .. } => study.compose(scales, *nfe),
         EvalCommand::Quality { dataset, nfe, .. } => study.quality(dataset, nfe),
         EvalCommand::Latency { nfe, guided, .. } => study.latency(nfe, *guided),

@@ -144,6 +144,8 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     );
     let text = ok(dir, &["eval", "joystick", "--model", "fm=fm", "--scales", "0,10", "--trials", "1", "-o", "eval"]);
     assert!(text.contains("velocity RMSE") && dir.join("eval/joystick.png").exists(), "{text}");
+    let text = ok(dir, &["eval", "waypoint", "--model", "fm=fm", "--scales", "10", "--trials", "1", "-o", "eval"]);
+    assert!(text.contains("| arrived |") && dir.join("eval/waypoint.csv").exists(), "{text}");
     // Guiding the last solver step too is another point: measured anew and said in the report.
     let last = ["eval", "joystick", "--model", "fm=fm", "--scales", "10", "--trials", "1", "-o", "eval"];
     let text = ok(dir, &[&last[..], &["--guidance-interval", "0:5"]].concat());

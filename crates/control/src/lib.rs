@@ -16,7 +16,7 @@ pub mod rollout;
 pub mod task;
 
 pub use controller::{ControlConfig, Controller, StepOutcome, StepReport, run, start_from_clip};
-pub use costs::{Cost, Heading, Joystick, Reach, Sum, Waypoint};
+pub use costs::{Cost, Heading, Joystick, Pursuit, Reach, Sum};
 pub use history::History;
 pub use layout::Layout;
 pub use rollout::{Rollout, RolloutInfo, Row};

@@ -1,7 +1,7 @@
 //! What the humanoid is asked to do, in the world and over time, and the cost that asks it at
 //! each control step (re-expressed in that step's character frame).
 
-use crate::costs::{Heading, Joystick, Reach, Sum, Waypoint};
+use crate::costs::{Heading, Joystick, Pursuit, Reach, Sum};
 use crate::{ControlError, Layout};
 use flowmimic_geom::CharFrame;
 use flowmimic_sim::skeleton::body;
@@ -129,7 +129,9 @@ impl Task {
             sum = sum.with(wr, Reach::world(layout, hand.body(), target, frame)?);
         }
         if let Some(goal) = self.waypoint {
-            sum = sum.with(ww, Waypoint::world(layout, goal, frame)?);
+            let to = Pursuit::world(goal, frame)?;
+            sum = sum.with(ww, Joystick::turning(layout, to.speed, 0.0, to.yaw_rate)?);
+            sum = sum.with(ww, Heading::new(layout, to.yaw_rate)?);
         }
         Ok((!sum.terms.is_empty()).then_some(sum))
     }

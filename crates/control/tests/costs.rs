@@ -45,12 +45,10 @@ fn gradients_match_finite_differences() {
     check_gradient(&Joystick::turning(layout, 1.0, -0.2, 0.7).unwrap(), &tau, "joystick while turning");
     check_gradient(&Heading::new(layout, 0.5).unwrap(), &tau, "heading");
     check_gradient(&Reach::new(layout, body::R_HAND, [0.3, -0.5, 1.4]).unwrap(), &tau, "reach");
-    check_gradient(&Waypoint::new(layout, [2.0, 1.0]).unwrap(), &tau, "waypoint far");
-    check_gradient(&Waypoint::new(layout, [0.1, 0.05]).unwrap(), &tau, "waypoint near");
     let both = Sum::default()
-        .with(1.0, Waypoint::new(layout, [2.0, 1.0]).unwrap())
+        .with(1.0, Heading::new(layout, -0.4).unwrap())
         .with(3.0, Reach::new(layout, body::R_HAND, [0.3, -0.5, 1.4]).unwrap());
-    check_gradient(&both, &tau, "waypoint + reach");
+    check_gradient(&both, &tau, "heading + reach");
 }
 
 #[test]
@@ -80,12 +78,18 @@ fn costs_measure_what_they_say() {
 #[test]
 fn world_targets_are_converted_through_the_root_pose() {
     let layout = Layout { horizon: 1 };
-    // Standing at (2, 3) facing +y: a world point 1 m further along +y is 1 m straight ahead.
+    // Standing at (2, 3) facing +y: a world point 1 m further along +y is 1 m straight ahead,
+    // so the walker goes straight at full speed without turning.
     let frame = CharFrame::new(DVec3::new(2.0, 3.0, 0.9), std::f64::consts::FRAC_PI_2);
-    let w = Waypoint::world(layout, [2.0, 4.0], &frame).unwrap();
+    let ahead = Pursuit::world([2.0, 4.0], &frame).unwrap();
+    assert!((ahead.speed - 1.0).abs() < 1e-9 && ahead.yaw_rate.abs() < 1e-9, "{ahead:?}");
+    // A point at -x in the world lies on its left: it turns left, at the capped rate, slowly.
+    let left = Pursuit::world([0.0, 3.0], &frame).unwrap();
+    assert!((left.yaw_rate - 0.8).abs() < 1e-9 && (left.speed - 0.2).abs() < 1e-9, "{left:?}");
+    let reach = Reach::world(layout, body::R_HAND, [2.0, 4.0, 1.0], &frame).unwrap();
     let mut tau = vec![0.0f32; layout.len()];
-    tau[layout.root_pos(1)] = 1.0;
-    assert!(w.cost(&tau) < 1e-6);
+    tau[layout.root_pos(1)..layout.root_pos(1) + 3].copy_from_slice(&[1.0, 0.0, 1.0]);
+    assert!(reach.cost(&tau) < 1e-6, "the hand at the root, 1 m ahead and 1 m up");
 }
 
 #[test]
@@ -96,7 +100,8 @@ fn bad_commands_are_refused_with_the_value() {
     assert!(Joystick::new(layout, 10.0, 0.0).err().unwrap().to_string().contains("10"));
     assert!(Reach::new(layout, body::R_HAND, [9.0, 0.0, 1.0]).is_err());
     assert!(Reach::new(layout, body::R_HAND, [0.5, 0.0, -1.0]).is_err());
-    assert!(Waypoint::new(layout, [f64::INFINITY, 0.0]).is_err());
+    assert!(Pursuit::new([f64::INFINITY, 0.0]).is_err());
+    assert!(Pursuit::new([300.0, 0.0]).err().unwrap().to_string().contains("300"));
     assert!(Heading::new(layout, 7.0).is_err());
 }
 

@@ -229,6 +229,47 @@ impl Study<'_> {
         )
     }
 
+    /// Waypoint navigation: arrival rate against guidance scale.
+    pub fn waypoint(&self, scales: &[f32], nfe: usize) -> Result<()> {
+        let trials = self.trials(20, 4);
+        let exp = Experiment {
+            name: "waypoint",
+            settings: self.settings(""),
+            title: "Waypoint navigation",
+            columns: &["arrived", "closest", "seconds", "fell"],
+            plot: "arrived",
+            x_label: "guidance scale w",
+            y_label: "arrival rate",
+            header: "| model | w | arrived | closest (m) | time to arrive (s) | falls |\n|---|---|---|---|---|---|",
+        };
+        let notes = format!(
+            "Goal 3-4 m from each trial's start at a bearing within 90 degrees of its heading; 10 s; arrived when the pelvis \
+             comes within 0.5 m of it; time to arrive averaged over the trials that arrive; NFE {nfe}, {trials} trials."
+        );
+        self.guided_sweep(
+            &exp,
+            (scales, nfe, trials, 300),
+            |bench, point, report| {
+                let r = protocols::waypoint(bench, point, trials, report)?;
+                Ok(r.iter()
+                    .map(|t| vec![rate(t.arrival.is_some()), t.closest, t.arrival.unwrap_or(f64::NAN), rate(t.fell)])
+                    .collect())
+            },
+            |m, s| {
+                format!(
+                    "| {} | {} | {:.0}% | {:.2} | {:.1} | {:.0}% |",
+                    m.label,
+                    s.scale,
+                    100.0 * s.mean["arrived"],
+                    s.mean["closest"],
+                    s.mean["seconds"],
+                    100.0 * s.mean["fell"]
+                )
+            },
+            &notes,
+        )
+    }
+
     /// A waypoint and a hand target at once: success rate against guidance scale.
     pub fn compose(&self, scales: &[f32], nfe: usize) -> Result<()> {
         let trials = self.trials(20, 4);

@@ -178,6 +178,49 @@ fn distance(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>().sqrt()
 }
 
+/// One waypoint trial: the pelvis's closest approach to the goal, and when it first came
+/// within 0.5 m (`None`: never).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WaypointTrial {
+    pub closest: f64,
+    pub arrival: Option<f64>,
+    pub fell: bool,
+}
+
+/// Waypoint navigation (BeyondMimic's task): a goal 3-4 m from each trial's start at a bearing
+/// within 90 degrees of its heading, 10 s to walk there; arrival when the pelvis is within
+/// 0.5 m of it (the composition's rule).
+pub fn waypoint(
+    bench: &Bench,
+    point: Point,
+    trials: usize,
+    on_step: impl FnMut(&StepReport),
+) -> Result<Vec<WaypointTrial>, ControlError> {
+    let mut rng = StdRng::seed_from_u64(point.seed ^ 0x3A7);
+    let tasks: Vec<Task> = (0..trials)
+        .map(|e| {
+            let (d, bearing) = (rng.random_range(3.0..4.0), rng.random_range(-1.0..1.0) * std::f64::consts::FRAC_PI_2);
+            let goal = bench.start_to_world(e, DVec3::new(d * bearing.cos(), d * bearing.sin(), 0.0));
+            Task { waypoint: Some([goal.x, goal.y]), ..Task::walk() }
+        })
+        .collect();
+    let r = bench.run(tasks, point, 10.0, false, on_step)?;
+    Ok((0..trials)
+        .map(|e| {
+            let goal = r.info.tasks[e].waypoint.expect("waypoint");
+            let distances: Vec<f64> = (1..=r.survived[e])
+                .map(|k| {
+                    let p = r.body(e, k, body::PELVIS);
+                    (p[0] - goal[0]).hypot(p[1] - goal[1])
+                })
+                .collect();
+            let closest = distances.iter().copied().fold(f64::INFINITY, f64::min);
+            let arrival = distances.iter().position(|&d| d <= 0.5).map(|k| (k + 1) as f64 / CONTROL_HZ);
+            WaypointTrial { closest, arrival, fell: r.fell(e) }
+        })
+        .collect())
+}
+
 /// One composition trial: closest approach to the waypoint and the hand target, and success.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ComposeTrial {
