@@ -214,7 +214,8 @@ impl Cost for Reach {
 
 /// Waypoint navigation as a joystick command (pure pursuit): walk forward toward the goal,
 /// turning toward it at [`Pursuit::TURN_GAIN`] times its bearing (at most 0.8 rad/s, the
-/// fastest turns of the wandering walks), slower within 1 m of it and while it lies to the side.
+/// fastest turns of the wandering walks), slower within 1 m of it (walk and turn alike) and while
+/// it lies to the side.
 /// BeyondMimic's cost on the predicted root positions, `sum_k ||P_k - g||^2`, was measured
 /// against it and replaced: over a 16-step horizon it pulls the path sideways instead of
 /// turning the walker, which then passes the goal (README, "Guidance that steers").
@@ -244,9 +245,12 @@ impl Pursuit {
             return Err(ControlError::BadCommand { what: "waypoint distance (max 100 m)", value: distance });
         }
         let bearing = goal[1].atan2(goal[0]);
+        // Near the goal its bearing swings with every step: slow the turn down with the walk,
+        // so that the walker stops there instead of spinning on the spot.
+        let near = (distance / Self::SLOWING).min(1.0);
         Ok(Self {
-            speed: Self::MAX_SPEED * (distance / Self::SLOWING).min(1.0) * bearing.cos().max(Self::TURNING_SPEED),
-            yaw_rate: (Self::TURN_GAIN * bearing).clamp(-Self::MAX_YAW_RATE, Self::MAX_YAW_RATE),
+            speed: Self::MAX_SPEED * near * bearing.cos().max(Self::TURNING_SPEED),
+            yaw_rate: near * (Self::TURN_GAIN * bearing).clamp(-Self::MAX_YAW_RATE, Self::MAX_YAW_RATE),
         })
     }
 

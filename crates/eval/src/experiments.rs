@@ -236,15 +236,16 @@ impl Study<'_> {
             name: "waypoint",
             settings: self.settings(""),
             title: "Waypoint navigation",
-            columns: &["arrived", "closest", "seconds", "fell"],
+            columns: &["arrived", "closest", "seconds", "last", "fell"],
             plot: "arrived",
             x_label: "guidance scale w",
             y_label: "arrival rate",
-            header: "| model | w | arrived | closest (m) | time to arrive (s) | falls |\n|---|---|---|---|---|---|",
+            header: "| model | w | arrived | closest (m) | time to arrive (s) | distance at the end (m) | falls |\n|---|---|---|---|---|---|---|",
         };
         let notes = format!(
             "Goal 3-4 m from each trial's start at a bearing within 90 degrees of its heading; 10 s; arrived when the pelvis \
-             comes within 0.5 m of it; time to arrive averaged over the trials that arrive; NFE {nfe}, {trials} trials."
+             comes within 0.5 m of it; time to arrive averaged over the trials that arrive; the distance at the end (10 s or a fall) \
+             says whether it stays; NFE {nfe}, {trials} trials."
         );
         self.guided_sweep(
             &exp,
@@ -252,17 +253,20 @@ impl Study<'_> {
             |bench, point, report| {
                 let r = protocols::waypoint(bench, point, trials, report)?;
                 Ok(r.iter()
-                    .map(|t| vec![rate(t.arrival.is_some()), t.closest, t.arrival.unwrap_or(f64::NAN), rate(t.fell)])
+                    .map(|t| {
+                        vec![rate(t.arrival.is_some()), t.closest, t.arrival.unwrap_or(f64::NAN), t.last, rate(t.fell)]
+                    })
                     .collect())
             },
             |m, s| {
                 format!(
-                    "| {} | {} | {:.0}% | {:.2} | {:.1} | {:.0}% |",
+                    "| {} | {} | {:.0}% | {:.2} | {:.1} | {:.2} | {:.0}% |",
                     m.label,
                     s.scale,
                     100.0 * s.mean["arrived"],
                     s.mean["closest"],
                     s.mean["seconds"],
+                    s.mean["last"],
                     100.0 * s.mean["fell"]
                 )
             },

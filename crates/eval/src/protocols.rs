@@ -178,12 +178,13 @@ fn distance(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum::<f64>().sqrt()
 }
 
-/// One waypoint trial: the pelvis's closest approach to the goal, and when it first came
-/// within 0.5 m (`None`: never).
+/// One waypoint trial: the pelvis's closest approach to the goal, when it first came within
+/// 0.5 m (`None`: never), and its distance at the end (whether it stays).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct WaypointTrial {
     pub closest: f64,
     pub arrival: Option<f64>,
+    pub last: f64,
     pub fell: bool,
 }
 
@@ -216,7 +217,8 @@ pub fn waypoint(
                 .collect();
             let closest = distances.iter().copied().fold(f64::INFINITY, f64::min);
             let arrival = distances.iter().position(|&d| d <= 0.5).map(|k| (k + 1) as f64 / CONTROL_HZ);
-            WaypointTrial { closest, arrival, fell: r.fell(e) }
+            let last = distances.last().copied().unwrap_or(f64::NAN);
+            WaypointTrial { closest, arrival, last, fell: r.fell(e) }
         })
         .collect())
 }
