@@ -5,14 +5,34 @@
 //! from noise to data. The network takes two times per sample, the start `s` and the interval's
 //! length `r - s`; a length of 0 asks for the instantaneous velocity, Flow Matching's target.
 //!
-//! Training uses the MeanFlow identity `u = v + (r - s) du/ds`, where `v = x_1 - x_0` and
-//! `du/ds = v . d_x u + d_s u` is the total derivative along the path with `r` held (so the
-//! length input shrinks as `s` grows). That derivative is a Jacobian-vector product; here it is
-//! a central difference of two network evaluations, and like the paper's JVP it is not
-//! differentiated (stop-gradient), so training needs no forward-mode autodiff.
+//! The target for an interval comes from the network itself, one of two ways ([`Consistency`]):
+//!
+//! - the MeanFlow identity `u = v + (r - s) du/ds`, where `v = x_1 - x_0` and
+//!   `du/ds = v . d_x u + d_s u` is the total derivative along the path with `r` held (so the
+//!   length input shrinks as `s` grows). That derivative is a Jacobian-vector product; here it
+//!   is a central difference of two network evaluations, and like the paper's JVP it is not
+//!   differentiated (stop-gradient), so training needs no forward-mode autodiff;
+//! - interval splitting (SplitMeanFlow, Guo et al. 2025; shortcut models' self-consistency,
+//!   Frans et al. 2024, at a random split instead of the midpoint): crossing `[s, m]` and then
+//!   `[m, r]` from where the first jump lands is crossing `[s, r]`, so
+//!   `(r - s) u(x, s, r) = (m - s) u(x, s, m) + (r - m) u(x + (m - s) u(x, s, m), m, r)`. It uses
+//!   the network's values, not its derivatives, and on the toy mixture its one step lands where
+//!   the identity's does not at the same budget (`tests/toy.rs`).
 
 use crate::{Guidance, Network, TrainingBatch, fm, guided_velocity};
 use rand::Rng;
+use serde::{Deserialize, Serialize};
+
+/// How the target of a sample with an interval is made from the network (module docs).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Consistency {
+    /// The MeanFlow identity `u = v + (r - s) du/ds`.
+    #[default]
+    Derivative,
+    /// Two jumps at a random split `m` of `[s, r]` make one.
+    Split,
+}
 
 /// Step of the central difference along the path: small against the fastest time feature
 /// (1000 rad per unit of time), large against f32 rounding of outputs of order 1.
@@ -26,37 +46,68 @@ pub fn training_batch(
     cond: &[f32],
     x1: &[f32],
     dim: usize,
-    share: f32,
+    (share, consistency): (f32, Consistency),
     rng: &mut impl Rng,
 ) -> TrainingBatch {
     let n = x1.len() / dim;
     let mut t = Vec::with_capacity(2 * n);
+    let mut splits = Vec::with_capacity(n);
     for _ in 0..n {
         let (a, b) = (rng.random::<f32>(), rng.random::<f32>());
         let (s, r) = if rng.random::<f32>() < share { (a.min(b), a.max(b)) } else { (a, a) };
         t.extend([s, r - s]);
+        // Drawn only where used, so that the identity's batches stay as they were.
+        splits.push(if consistency == Consistency::Split { rng.random::<f32>() } else { 0.0 });
     }
     let (x, v) = fm::on_path(x1, dim, |row| t[2 * row], rng);
     let mut target = v.clone();
-    // du/ds on the samples with an interval, by a central difference along (v, 1, -1).
     let wide: Vec<usize> = (0..n).filter(|&i| t[2 * i + 1] > 0.0).collect();
-    if !wide.is_empty() {
-        let c = cond.len() / n.max(1);
-        let rows = |i: &usize| i * dim..(i + 1) * dim;
-        let cond_w: Vec<f32> = wide.iter().flat_map(|&i| cond[i * c..(i + 1) * c].to_vec()).collect();
-        let shifted = |h: f32| -> Vec<f32> {
-            let xs: Vec<f32> = wide.iter().flat_map(|i| rows(i).map(|j| x[j] + h * v[j])).collect();
-            let ts: Vec<f32> = wide.iter().flat_map(|&i| [t[2 * i] + h, t[2 * i + 1] - h]).collect();
-            net.predict(&xs, &ts, &cond_w, wide.len())
-        };
-        let (plus, minus) = (shifted(DIFFERENCE_STEP), shifted(-DIFFERENCE_STEP));
-        for (k, &i) in wide.iter().enumerate() {
-            let length = t[2 * i + 1];
-            for (o, j) in rows(&i).enumerate() {
-                let du_ds = (plus[k * dim + o] - minus[k * dim + o]) / (2.0 * DIFFERENCE_STEP);
-                target[j] = v[j] + length * du_ds;
-            }
+    if wide.is_empty() {
+        return TrainingBatch { x, t, target };
+    }
+    let c = cond.len() / n.max(1);
+    let rows = |i: &usize| i * dim..(i + 1) * dim;
+    let cond_w: Vec<f32> = wide.iter().flat_map(|&i| cond[i * c..(i + 1) * c].to_vec()).collect();
+    let x_w: Vec<f32> = wide.iter().flat_map(|i| x[rows(i)].to_vec()).collect();
+    let predict = |xs: &[f32], ts: &[f32]| net.predict(xs, ts, &cond_w, wide.len());
+    let u = match consistency {
+        Consistency::Derivative => {
+            // du/ds by a central difference along (v, 1, -1).
+            let shifted = |h: f32| -> Vec<f32> {
+                let xs: Vec<f32> = wide.iter().flat_map(|i| rows(i).map(|j| x[j] + h * v[j])).collect();
+                let ts: Vec<f32> = wide.iter().flat_map(|&i| [t[2 * i] + h, t[2 * i + 1] - h]).collect();
+                predict(&xs, &ts)
+            };
+            let (plus, minus) = (shifted(DIFFERENCE_STEP), shifted(-DIFFERENCE_STEP));
+            let v_w: Vec<f32> = wide.iter().flat_map(|i| v[rows(i)].to_vec()).collect();
+            (0..v_w.len())
+                .map(|j| {
+                    let length = t[2 * wide[j / dim] + 1];
+                    v_w[j] + length * ((plus[j] - minus[j]) / (2.0 * DIFFERENCE_STEP))
+                })
+                .collect::<Vec<f32>>()
         }
+        Consistency::Split => {
+            // The first part `[s, m]` from x, the second `[m, r]` from where the first lands.
+            let first: Vec<f32> = wide.iter().flat_map(|&i| [t[2 * i], splits[i] * t[2 * i + 1]]).collect();
+            let u1 = predict(&x_w, &first);
+            let landed: Vec<f32> =
+                x_w.iter().zip(&u1).enumerate().map(|(j, (x, u))| x + first[2 * (j / dim) + 1] * u).collect();
+            let second: Vec<f32> = wide
+                .iter()
+                .flat_map(|&i| [t[2 * i] + splits[i] * t[2 * i + 1], (1.0 - splits[i]) * t[2 * i + 1]])
+                .collect();
+            let u2 = predict(&landed, &second);
+            (0..u1.len())
+                .map(|j| {
+                    let m = splits[wide[j / dim]];
+                    m * u1[j] + (1.0 - m) * u2[j]
+                })
+                .collect()
+        }
+    };
+    for (k, i) in wide.iter().enumerate() {
+        target[rows(i)].copy_from_slice(&u[k * dim..(k + 1) * dim]);
     }
     TrainingBatch { x, t, target }
 }

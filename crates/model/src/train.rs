@@ -50,6 +50,9 @@ pub struct TrainConfig {
     pub fm_solver: fm::Solver,
     /// MeanFlow's share of training samples with an interval (the rest regress FM's velocity).
     pub meanflow_share: f32,
+    /// How MeanFlow's interval targets are made: `derivative` (the MeanFlow identity) or
+    /// `split` (two jumps make one; see `meanflow::Consistency`).
+    pub meanflow_consistency: meanflow::Consistency,
     /// What Flow Matching's and MeanFlow's network predicts: `velocity` (the paper) or
     /// `sample` (the clean sample, read as a velocity; see `fm::Prediction`).
     pub flow_prediction: fm::Prediction,
@@ -80,6 +83,7 @@ impl Default for TrainConfig {
             fm_time: fm::TimeDistribution::Uniform,
             fm_solver: fm::Solver::Euler,
             meanflow_share: 0.5,
+            meanflow_consistency: meanflow::Consistency::Derivative,
             flow_prediction: fm::Prediction::Velocity,
             ddpm_steps: 100,
             ddpm_prediction: ddpm::Prediction::Sample,
@@ -114,7 +118,11 @@ impl TrainConfig {
     pub fn objective(&self, name: &str) -> Result<Objective, ModelError> {
         match name {
             "fm" => Ok(Objective::Fm { time: self.fm_time, solver: self.fm_solver, prediction: self.flow_prediction }),
-            "meanflow" => Ok(Objective::MeanFlow { share: self.meanflow_share, prediction: self.flow_prediction }),
+            "meanflow" => Ok(Objective::MeanFlow {
+                share: self.meanflow_share,
+                prediction: self.flow_prediction,
+                consistency: self.meanflow_consistency,
+            }),
             "ddpm" => {
                 Ok(Objective::Ddpm { steps: self.ddpm_steps, prediction: self.ddpm_prediction, clip: self.ddpm_clip })
             }
@@ -312,9 +320,9 @@ impl Trainer {
         let batch = match self.model.objective {
             Objective::Fm { time, .. } => fm::training_batch(clean, dim, time, rng),
             // The target differentiates the velocity the network stands for.
-            Objective::MeanFlow { share, .. } => {
-                self.model.with_flow_net(|net| meanflow::training_batch(net, cond, clean, dim, share, rng))
-            }
+            Objective::MeanFlow { share, consistency, .. } => self
+                .model
+                .with_flow_net(|net| meanflow::training_batch(net, cond, clean, dim, (share, consistency), rng)),
             Objective::Ddpm { steps, prediction, .. } => {
                 ddpm::training_batch(&ddpm::Schedule::cosine(steps), prediction, clean, dim, rng)
             }

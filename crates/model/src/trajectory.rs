@@ -205,6 +205,9 @@ pub enum Objective {
         share: f32,
         #[serde(default)]
         prediction: fm::Prediction,
+        /// Files written before the choice existed used the MeanFlow identity.
+        #[serde(default)]
+        consistency: meanflow::Consistency,
     },
     /// DDPM on a cosine schedule of `steps` predicting `prediction`, ancestral sampling
     /// respaced to the NFE; clean predictions clipped to `clip` standard deviations.
@@ -247,11 +250,15 @@ impl Objective {
     }
 
     /// The objective for people: its name in capitals, and what the network predicts where it
-    /// is not the default (the clean sample for FM and MeanFlow, the noise for DDPM).
+    /// is not the default (the clean sample for FM and MeanFlow, the noise for DDPM), and
+    /// MeanFlow's interval splitting.
     pub fn label(&self) -> String {
         let name = self.name().to_uppercase();
+        let split = matches!(self, Objective::MeanFlow { consistency: meanflow::Consistency::Split, .. });
         match self {
+            _ if self.predicts_clean_flow() && split => format!("{name} (clean sample, split)"),
             _ if self.predicts_clean_flow() => format!("{name} (clean sample)"),
+            _ if split => format!("{name} (split)"),
             Objective::Ddpm { prediction: ddpm::Prediction::Epsilon, .. } => format!("{name} (epsilon)"),
             _ => name,
         }
