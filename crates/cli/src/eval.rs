@@ -97,7 +97,7 @@ pub enum EvalCommand {
         nfe: usize,
     },
     /// Walk to a goal 3-4 m away at a bearing within 90 degrees: arrival rate (pelvis within
-    /// 0.5 m), closest approach and time to arrive, against guidance scale.
+    /// 0.5 m), closest approach, time to arrive and distance at the end, against guidance scale.
     Waypoint {
         #[command(flatten)]
         common: Common,

@@ -165,8 +165,9 @@ enum Command {
         #[arg(long, default_value = "runs/play")]
         record_dir: PathBuf,
     },
-    /// The paper's experiments: survival, joystick, reach, compose, quality, latency. Each
-    /// writes CSV, JSON and plots and appends to <out>/report.md.
+    /// The paper's experiments and a few more: survival, joystick, reach, waypoint, compose,
+    /// quality, guidance, latency. Each writes CSV, JSON and plots and appends to
+    /// <out>/report.md.
     #[command(subcommand)]
     Eval(eval::EvalCommand),
     /// Rollout datasets: inspect them, compute window statistics.
