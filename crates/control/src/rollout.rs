@@ -15,6 +15,7 @@
 //! [`RolloutInfo`].
 
 use flowmimic_io::tensors::{self, TensorError, TensorFile};
+use flowmimic_sim::skeleton::body;
 use flowmimic_sim::{Env, NUM_BODIES, NUM_DOFS, STATE_DIM};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
@@ -133,6 +134,17 @@ impl Rollout {
     pub fn body(&self, e: usize, k: usize, b: usize) -> [f64; 3] {
         let at = ((e * (self.steps + 1) + k) * NUM_BODIES + b) * 3;
         [0, 1, 2].map(|i| f64::from(self.body_pos[at + i]))
+    }
+
+    /// Planar distance of the pelvis from `goal` (world x, y) at each step 1..=survived of
+    /// environment `e`.
+    pub fn pelvis_distances(&self, e: usize, goal: [f64; 2]) -> Vec<f64> {
+        (1..=self.survived[e])
+            .map(|k| {
+                let p = self.body(e, k, body::PELVIS);
+                (p[0] - goal[0]).hypot(p[1] - goal[1])
+            })
+            .collect()
     }
 
     pub fn qpos(&self, e: usize, k: usize) -> &[f32] {

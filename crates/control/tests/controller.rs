@@ -4,7 +4,6 @@
 
 use flowmimic_control::{ControlConfig, Controller, JoystickSegment, Task, run};
 use flowmimic_model::TrajectoryModel;
-use flowmimic_sim::skeleton::body;
 use flowmimic_sim::state::offset;
 use flowmimic_sim::{Humanoid, NUM_DOFS, SimConfig};
 use std::path::Path;
@@ -101,17 +100,7 @@ fn the_shipped_guidance_model_walks_to_a_waypoint_off_to_its_left() {
     let tasks: Vec<Task> = goals.iter().map(|&g| Task { waypoint: Some(g), ..Task::walk() }).collect();
     let closest = |scale: f32| -> Vec<f64> {
         let r = run(&model, &h, &clip, tasks.clone(), &ControlConfig::new(2, scale, 6.0), "guide", |_| {}).unwrap();
-        (0..4)
-            .map(|e| {
-                let goal = goals[e];
-                (1..=r.survived[e])
-                    .map(|k| {
-                        let p = r.body(e, k, body::PELVIS);
-                        (p[0] - goal[0]).hypot(p[1] - goal[1])
-                    })
-                    .fold(f64::INFINITY, f64::min)
-            })
-            .collect()
+        (0..4).map(|e| r.pelvis_distances(e, goals[e]).into_iter().fold(f64::INFINITY, f64::min)).collect()
     };
     let (unguided, guided) = (closest(0.0), closest(30.0));
     eprintln!("closest approach (m): unguided {unguided:.2?}, w 30 {guided:.2?}");

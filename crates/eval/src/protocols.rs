@@ -208,13 +208,7 @@ pub fn waypoint(
     let r = bench.run(tasks, point, 10.0, false, on_step)?;
     Ok((0..trials)
         .map(|e| {
-            let goal = r.info.tasks[e].waypoint.expect("waypoint");
-            let distances: Vec<f64> = (1..=r.survived[e])
-                .map(|k| {
-                    let p = r.body(e, k, body::PELVIS);
-                    (p[0] - goal[0]).hypot(p[1] - goal[1])
-                })
-                .collect();
+            let distances = r.pelvis_distances(e, r.info.tasks[e].waypoint.expect("waypoint"));
             let closest = distances.iter().copied().fold(f64::INFINITY, f64::min);
             let arrival = distances.iter().position(|&d| d <= 0.5).map(|k| (k + 1) as f64 / CONTROL_HZ);
             let last = distances.last().copied().unwrap_or(f64::NAN);
@@ -256,9 +250,7 @@ pub fn compose(
             let task = &r.info.tasks[e];
             let (goal, target) = (task.waypoint.expect("waypoint"), task.reach.expect("reach").1);
             let (mut pelvis_min, mut hand_min, mut success) = (f64::INFINITY, f64::INFINITY, false);
-            for k in 1..=r.survived[e] {
-                let p = r.body(e, k, body::PELVIS);
-                let d_pelvis = (p[0] - goal[0]).hypot(p[1] - goal[1]);
+            for (k, d_pelvis) in (1..).zip(r.pelvis_distances(e, goal)) {
                 let d_hand = distance(&r.body(e, k, body::R_HAND), &target);
                 pelvis_min = pelvis_min.min(d_pelvis);
                 hand_min = hand_min.min(d_hand);

@@ -68,7 +68,6 @@ pub fn training_batch(
     let c = cond.len() / n.max(1);
     let rows = |i: &usize| i * dim..(i + 1) * dim;
     let cond_w: Vec<f32> = wide.iter().flat_map(|&i| cond[i * c..(i + 1) * c].to_vec()).collect();
-    let x_w: Vec<f32> = wide.iter().flat_map(|i| x[rows(i)].to_vec()).collect();
     let predict = |xs: &[f32], ts: &[f32]| net.predict(xs, ts, &cond_w, wide.len());
     let u = match consistency {
         Consistency::Derivative => {
@@ -89,6 +88,7 @@ pub fn training_batch(
         }
         Consistency::Split => {
             // The first part `[s, m]` from x, the second `[m, r]` from where the first lands.
+            let x_w: Vec<f32> = wide.iter().flat_map(|i| x[rows(i)].to_vec()).collect();
             let first: Vec<f32> = wide.iter().flat_map(|&i| [t[2 * i], splits[i] * t[2 * i + 1]]).collect();
             let u1 = predict(&x_w, &first);
             let landed: Vec<f32> =

@@ -319,7 +319,7 @@ impl Trainer {
         let dim = self.model.layout().future_len();
         let batch = match self.model.objective {
             Objective::Fm { time, .. } => fm::training_batch(clean, dim, time, rng),
-            // The target differentiates the velocity the network stands for.
+            // The target reads the network as the velocity it stands for.
             Objective::MeanFlow { share, consistency, .. } => self
                 .model
                 .with_flow_net(|net| meanflow::training_batch(net, cond, clean, dim, (share, consistency), rng)),

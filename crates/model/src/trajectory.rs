@@ -254,14 +254,15 @@ impl Objective {
     /// MeanFlow's interval splitting.
     pub fn label(&self) -> String {
         let name = self.name().to_uppercase();
-        let split = matches!(self, Objective::MeanFlow { consistency: meanflow::Consistency::Split, .. });
-        match self {
-            _ if self.predicts_clean_flow() && split => format!("{name} (clean sample, split)"),
-            _ if self.predicts_clean_flow() => format!("{name} (clean sample)"),
-            _ if split => format!("{name} (split)"),
-            Objective::Ddpm { prediction: ddpm::Prediction::Epsilon, .. } => format!("{name} (epsilon)"),
-            _ => name,
-        }
+        let notes: Vec<&str> = [
+            (self.predicts_clean_flow(), "clean sample"),
+            (matches!(self, Objective::MeanFlow { consistency: meanflow::Consistency::Split, .. }), "split"),
+            (matches!(self, Objective::Ddpm { prediction: ddpm::Prediction::Epsilon, .. }), "epsilon"),
+        ]
+        .into_iter()
+        .filter_map(|(holds, note)| holds.then_some(note))
+        .collect();
+        if notes.is_empty() { name } else { format!("{name} ({})", notes.join(", ")) }
     }
 
     /// Whether a flow network predicts the clean sample (see [`fm::CleanSample`]).
