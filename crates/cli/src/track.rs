@@ -7,7 +7,7 @@ use flowmimic_motion::Clip;
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::Humanoid;
 use flowmimic_track::train::{Checkpoint, ClipLog, IterationLog};
-use flowmimic_track::{TrackConfig, Trainer, evaluate};
+use flowmimic_track::{EvalSetup, TrackConfig, Trainer, evaluate};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -49,6 +49,10 @@ pub enum TrackCommand {
         /// Apply the survival protocol's kicks (0-0.5 m/s every second).
         #[arg(long)]
         kicks: bool,
+        /// Start every episode at this frame of each clip instead of its first: whether a
+        /// failure belongs to a part of the clip or to how long the episode has run.
+        #[arg(long, default_value_t = 0)]
+        start_frame: usize,
     },
 }
 
@@ -107,13 +111,14 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
             plot_curves(&run, &rows)?;
             eprintln!("wrote reward, episode_length and body_error .png/.svg in {}", run.display());
         }
-        TrackCommand::Eval { run, episodes, clip, kicks } => {
+        TrackCommand::Eval { run, episodes, clip, kicks, start_frame } => {
             let ck = Checkpoint::read(&run.join(RUN_POLICY))?;
             let (cfg, policy_net) = (ck.config()?, ck.policy()?);
             let clips = if clip.is_empty() { run_clips(humanoid, &run)? } else { load_clips(humanoid, &clip)? };
             // One JSON line per clip, so that a failing clip cannot hide behind an average.
             for clip in clips {
-                let report = evaluate(humanoid, &policy_net, &clip, &cfg, episodes.max(1), kicks, 12345)?;
+                let setup = EvalSetup { episodes: episodes.max(1), start_frame, kicks, seed: 12345 };
+                let report = evaluate(humanoid, &policy_net, &clip, &cfg, setup)?;
                 println!("{}", serde_json::to_string(&report)?);
             }
         }

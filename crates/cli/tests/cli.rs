@@ -27,7 +27,11 @@ fn stages_connect_through_their_files() {
     assert!(resumed.contains("resumed") && resumed.contains("[    3/3]"), "{resumed}");
     let eval = ok(&dir, &["track", "eval", "run", "--episodes", "2"]);
     assert!(eval.contains("\"clip\":\"w\"") && eval.contains("\"clip_steps\":45"), "{eval}");
-    assert!(eval.contains("\"root_path_error\":"), "{eval}");
+    assert!(eval.contains("\"root_path_error\":") && eval.contains("\"end_heading_error\":"), "{eval}");
+    let later = ok(&dir, &["track", "eval", "run", "--episodes", "2", "--start-frame", "20"]);
+    assert!(later.contains("\"start_frame\":20") && later.contains("\"clip_steps\":45"), "{later}");
+    let (success, text) = flowmimic(&dir, &["track", "eval", "run", "--start-frame", "45"]);
+    assert!(!success && text.contains("start frame 45") && text.contains("clip w"), "{text}");
     let collect = ok(&dir, &["collect", "run", "-o", "data"]);
     assert!(collect.contains("steps/s") && collect.contains("fall rate"), "{collect}");
     let inspect = ok(&dir, &["dataset", "inspect", "data"]);

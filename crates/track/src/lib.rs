@@ -9,7 +9,7 @@ pub mod ppo;
 pub mod task;
 pub mod train;
 
-pub use train::{EvalReport, TrackConfig, Trainer, evaluate};
+pub use train::{EvalReport, EvalSetup, TrackConfig, Trainer, evaluate};
 
 #[derive(Debug, thiserror::Error)]
 pub enum TrackError {

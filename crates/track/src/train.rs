@@ -731,14 +731,33 @@ pub struct EvalReport {
     pub success_rate: f64,
     /// Mean root-relative body position error over all steps, m.
     pub body_pos_error: f64,
-    /// Mean control steps survived.
+    /// Mean control steps survived, from the start frame.
     pub mean_steps: f64,
+    /// Control steps of the whole clip.
     pub clip_steps: usize,
     /// How far the root's path strays from the reference's, m/s: over every 1 s window, the
     /// distance between the humanoid's and the reference's horizontal displacement, each in its
     /// heading at the window's start. The body error is root-relative, so a humanoid that steps
     /// in place while the reference walks shows here, not there.
     pub root_path_error: f64,
+    /// The frame episodes started from.
+    pub start_frame: usize,
+    /// Where each episode ended (clip end or failure), averaged: the pelvis's horizontal
+    /// distance from the reference's, m, and the difference of their headings, rad. Drift that
+    /// the root-relative errors cannot see accumulates here over a long episode.
+    pub end_offset: f64,
+    pub end_heading_error: f64,
+}
+
+/// How [`evaluate`] runs: `episodes` deterministic episodes from frame `start_frame` (with the
+/// reset noise, seeded from `seed`), pushes off, or the survival protocol's kicks (0-0.5 m/s
+/// every second) when `kicks`.
+#[derive(Clone, Copy, Debug)]
+pub struct EvalSetup {
+    pub episodes: usize,
+    pub start_frame: usize,
+    pub kicks: bool,
+    pub seed: u64,
 }
 
 /// Control steps in a root-path window (1 s).
@@ -757,25 +776,30 @@ fn displacement(a: [f64; 3], b: [f64; 3]) -> [f64; 2] {
     [c * dx + s * dy, -s * dx + c * dy]
 }
 
-/// Runs `episodes` episodes from the clip's first frame (with the reset noise), pushes off,
-/// or with the survival protocol's kicks (0-0.5 m/s every second) when `kicks`.
+/// Runs the deterministic policy on `clip` as `setup` says.
 pub fn evaluate(
     humanoid: &Arc<Humanoid>,
     policy: &Policy,
     clip: &Clip,
     cfg: &TrackConfig,
-    episodes: usize,
-    kicks: bool,
-    seed: u64,
+    setup: EvalSetup,
 ) -> Result<EvalReport, TrackError> {
+    let EvalSetup { episodes, start_frame, kicks, seed } = setup;
     let reference = Reference::new(clip.clone());
+    if start_frame + 1 >= reference.len() {
+        return Err(TrackError::Invalid(format!(
+            "start frame {start_frame} is not before the last frame of clip {} ({} frames)",
+            clip.name,
+            reference.len()
+        )));
+    }
     let mut eval_cfg = cfg.clone();
     eval_cfg.push_max = if kicks { 0.5 } else { 0.0 };
     eval_cfg.push_interval = [1.0, 1.0];
     let mut trackers: Vec<Tracker> = (0..episodes).map(|_| Tracker::new(humanoid)).collect();
     let mut rngs: Vec<StdRng> = (0..episodes).map(|i| StdRng::seed_from_u64(seed.wrapping_add(i as u64))).collect();
     for (t, rng) in trackers.iter_mut().zip(&mut rngs) {
-        t.reset(&reference, 0, &eval_cfg, rng)?;
+        t.reset(&reference, start_frame, &eval_cfg, rng)?;
     }
     let mut alive = vec![true; episodes];
     let mut survived = vec![0usize; episodes];
@@ -784,8 +808,9 @@ pub fn evaluate(
     let mut paths: Vec<Vec<([f64; 3], usize)>> =
         trackers.iter().map(|t| vec![(root_pose(t.env().qpos()), t.frame)]).collect();
     let (mut path_error_sum, mut path_n) = (0.0, 0usize);
+    let (mut offset_sum, mut heading_sum) = (0.0, 0.0);
     let mut raw = vec![0.0f32; episodes * OBS_DIM];
-    for _ in 0..reference.len() - 1 {
+    for _ in start_frame..reference.len() - 1 {
         trackers.par_iter().zip(raw.par_chunks_mut(OBS_DIM)).for_each(|(t, o)| t.observe(&reference, o));
         let actions = policy.act(&raw, episodes);
         let results: Vec<(RewardTerms, Ending)> =
@@ -822,6 +847,11 @@ pub fn evaluate(
                 }
                 Ending::Failed | Ending::Diverged => alive[i] = false,
             }
+            if !alive[i] {
+                let (ours, theirs) = (path[path.len() - 1].0, root_pose(&clip.qpos[path[path.len() - 1].1]));
+                offset_sum += (ours[0] - theirs[0]).hypot(ours[1] - theirs[1]);
+                heading_sum += flowmimic_geom::wrap_angle(ours[2] - theirs[2]).abs();
+            }
         }
     }
     Ok(EvalReport {
@@ -832,6 +862,9 @@ pub fn evaluate(
         mean_steps: survived.iter().sum::<usize>() as f64 / episodes as f64,
         clip_steps: reference.len() - 1,
         root_path_error: path_error_sum / path_n.max(1) as f64,
+        start_frame,
+        end_offset: offset_sum / episodes as f64,
+        end_heading_error: heading_sum / episodes as f64,
     })
 }
 
