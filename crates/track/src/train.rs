@@ -62,6 +62,11 @@ pub struct TrackConfig {
     /// the rest pick one evenly. Long clips get practice in proportion to their motion, short
     /// ones keep a floor.
     pub clip_length_share: f64,
+    /// The share of resets that start at the clip's first frame instead of an adaptively drawn
+    /// one. Adaptive starts credit a failure to the frames where it happens, so a fall that
+    /// follows seconds of drift is practised from a fresh start there, without the drift;
+    /// episodes from the first frame carry it, as `track eval` does.
+    pub first_frame_share: f64,
     pub seed: u64,
     /// Iterations between checkpoints.
     pub checkpoint_every: usize,
@@ -97,6 +102,7 @@ impl Default for TrackConfig {
             bin_smoothing: 0.1,
             uniform_share: 0.3,
             clip_length_share: 0.5,
+            first_frame_share: 0.0,
             seed: 0,
             checkpoint_every: 25,
         }
@@ -123,9 +129,18 @@ impl TrackConfig {
         if positive.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
             return bad("learning_rate, kl_target, clip, max_grad_norm, action_scale and bin_seconds must be positive");
         }
-        let unit = [self.gamma, self.lambda, self.bin_smoothing, self.uniform_share, self.clip_length_share];
+        let unit = [
+            self.gamma,
+            self.lambda,
+            self.bin_smoothing,
+            self.uniform_share,
+            self.clip_length_share,
+            self.first_frame_share,
+        ];
         if unit.iter().any(|v| !(0.0..=1.0).contains(v)) {
-            return bad("gamma, lambda, bin_smoothing, uniform_share and clip_length_share must be in [0, 1]");
+            return bad(
+                "gamma, lambda, bin_smoothing, uniform_share, clip_length_share and first_frame_share must be in [0, 1]",
+            );
         }
         let rest =
             [self.entropy, self.value_coef, self.init_noise, self.push_max, self.max_height_error, self.max_tilt_error];
@@ -345,7 +360,9 @@ impl Trainer {
         let lengths: Vec<usize> = self.references.iter().map(|r| r.len()).collect();
         let c = draw_clip(&lengths, self.cfg.clip_length_share, &mut self.rng);
         self.env_clips[i] = c;
-        let start = self.samplers[c].sample(&self.cfg, &mut self.rng);
+        // Drawn only when asked for, so that runs without it keep their random stream.
+        let first = self.cfg.first_frame_share > 0.0 && self.rng.random::<f64>() < self.cfg.first_frame_share;
+        let start = if first { 0 } else { self.samplers[c].sample(&self.cfg, &mut self.rng) };
         self.trackers[i].reset(&self.references[c], start, &self.cfg, &mut self.rngs[i])?;
         Ok(())
     }
@@ -928,5 +945,21 @@ mod tests {
             assert!((got - expected).abs() < 0.015, "share {share}: {got} of episodes on the long clip");
         }
         assert_eq!(draw_clip(&[5], 1.0, &mut rng), 0);
+    }
+
+    #[test]
+    fn episodes_start_at_the_first_frame_in_the_configured_share() {
+        let h = Humanoid::new(flowmimic_sim::SimConfig::default()).unwrap();
+        let params = flowmimic_motion::GaitParams { duration: 4.0, ..Default::default() };
+        let clip = flowmimic_motion::generate(&h, "walk", &params).unwrap().0;
+        let cfg = TrackConfig { envs: 400, hidden: vec![8], ..Default::default() };
+        let at_first = |share: f64| {
+            let t =
+                Trainer::new(&h, vec![clip.clone()], TrackConfig { first_frame_share: share, ..cfg.clone() }).unwrap();
+            t.trackers.iter().filter(|t| t.start == 0).count()
+        };
+        // Adaptive starts alone (uniform before any failure) put about 1 in 120 frames at 0.
+        let (none, half, all) = (at_first(0.0), at_first(0.5), at_first(1.0));
+        assert!(none < 20 && (160..240).contains(&half) && all == 400, "{none} {half} {all} of 400 at frame 0");
     }
 }
