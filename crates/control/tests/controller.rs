@@ -110,9 +110,9 @@ fn the_shipped_guidance_model_walks_to_a_waypoint_off_to_its_left() {
 
 /// The shipped one-step model in one network call per control step, against the shipped Flow
 /// Matching model in one Euler step, both under the survival protocol's kicks (0-0.5 m/s every
-/// second), 8 trials of at most 30 s (measured here: mean 781 against 134 steps of 900; the
-/// README's 20-trial numbers: 886 and 109 of 1000). The bounds leave room for another machine's
-/// floating point to take the kicked walks elsewhere.
+/// second), 8 trials of at most 30 s (measured here: every trial survives, 900 steps, against a
+/// mean of 134; the README's 20-trial numbers: 1000 and 109 of 1000). The bounds leave room for
+/// another machine's floating point to take the kicked walks elsewhere.
 #[test]
 fn the_shipped_one_step_model_survives_kicks_in_one_network_call() {
     let h = Humanoid::new(SimConfig::default()).unwrap();
@@ -126,5 +126,5 @@ fn the_shipped_one_step_model_survives_kicks_in_one_network_call() {
     };
     let (one_step, fm) = (mean_survival("onestep"), mean_survival("fm"));
     eprintln!("mean control steps survived at NFE 1 (of 900): one-step model {one_step:.0}, FM {fm:.0}");
-    assert!(one_step > 500.0 && fm < 300.0 && one_step > 3.0 * fm, "one-step model {one_step:.0}, FM {fm:.0}");
+    assert!(one_step > 700.0 && fm < 300.0 && one_step > 3.0 * fm, "one-step model {one_step:.0}, FM {fm:.0}");
 }

@@ -259,13 +259,15 @@ impl Study<'_> {
                     .collect())
             },
             |m, s| {
+                // No trial arrived: there is no time to average.
+                let seconds = s.mean["seconds"];
+                let seconds = if seconds.is_nan() { "—".to_string() } else { format!("{seconds:.1}") };
                 format!(
-                    "| {} | {} | {:.0}% | {:.2} | {:.1} | {:.2} | {:.0}% |",
+                    "| {} | {} | {:.0}% | {:.2} | {seconds} | {:.2} | {:.0}% |",
                     m.label,
                     s.scale,
                     100.0 * s.mean["arrived"],
                     s.mean["closest"],
-                    s.mean["seconds"],
                     s.mean["last"],
                     100.0 * s.mean["fell"]
                 )
