@@ -34,18 +34,29 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let mut rng = StdRng::seed_from_u64(1);
         let (mut spread_action, mut spread_future, mut error_action) = (0.0, 0.0, 0.0);
         for _ in 0..WINDOWS {
-            let (_, shard) = &shards[rng.random_range(0..shards.len())];
-            let starts = window_starts(shard, layout.spec);
-            let w = window(shard, layout.spec, starts[rng.random_range(0..starts.len())]);
+            let w = loop {
+                let (_, shard) = &shards[rng.random_range(0..shards.len())];
+                let starts = window_starts(shard, layout.spec);
+                // A rollout shorter than a window has none.
+                if !starts.is_empty() {
+                    break window(shard, layout.spec, starts[rng.random_range(0..starts.len())]);
+                }
+            };
             let row = layout.interleave(&w.states, &w.actions);
             let cond: Vec<f32> = (0..DRAWS).flat_map(|_| row[..c].iter().copied()).collect();
-            let out = &model.sample(&cond, DRAWS, nfe, None, &mut rng);
-            let column = |j: usize| (0..DRAWS).map(move |d| f64::from(out[d * f + j]));
-            let mean = |j: usize| column(j).sum::<f64>() / DRAWS as f64;
-            let std = |j: usize| (column(j).map(|x| (x - mean(j)).powi(2)).sum::<f64>() / DRAWS as f64).sqrt();
-            spread_action += (0..actions).map(std).sum::<f64>() / actions as f64;
-            spread_future += (0..f).map(std).sum::<f64>() / f as f64;
-            error_action += (0..actions).map(|j| (mean(j) - f64::from(row[c + j])).abs()).sum::<f64>() / actions as f64;
+            let out = model.sample(&cond, DRAWS, nfe, None, &mut rng);
+            // Mean and standard deviation of each future entry across the draws.
+            let moments: Vec<(f64, f64)> = (0..f)
+                .map(|j| {
+                    let xs: Vec<f64> = (0..DRAWS).map(|d| f64::from(out[d * f + j])).collect();
+                    let mean = xs.iter().sum::<f64>() / DRAWS as f64;
+                    (mean, (xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / DRAWS as f64).sqrt())
+                })
+                .collect();
+            spread_action += moments[..actions].iter().map(|m| m.1).sum::<f64>() / actions as f64;
+            spread_future += moments.iter().map(|m| m.1).sum::<f64>() / f as f64;
+            let errors = moments[..actions].iter().zip(&row[c..]).map(|(m, &x)| (m.0 - f64::from(x)).abs());
+            error_action += errors.sum::<f64>() / actions as f64;
         }
         let n = WINDOWS as f64;
         println!(

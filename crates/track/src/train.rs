@@ -847,8 +847,10 @@ pub fn evaluate(
             survived[i] += 1;
             error_sum += f64::from(terms.body_pos_error);
             error_n += 1;
+            // The root pose now and the reference frame it tracks.
+            let now = (root_pose(trackers[i].env().qpos()), trackers[i].frame.min(reference.len() - 1));
             let path = &mut paths[i];
-            path.push((root_pose(trackers[i].env().qpos()), trackers[i].frame.min(reference.len() - 1)));
+            path.push(now);
             if path.len() > PATH_WINDOW {
                 let ((start, f0), (end, f1)) = (path[path.len() - 1 - PATH_WINDOW], path[path.len() - 1]);
                 let ours = displacement(start, end);
@@ -865,7 +867,7 @@ pub fn evaluate(
                 Ending::Failed | Ending::Diverged => alive[i] = false,
             }
             if !alive[i] {
-                let (ours, theirs) = (path[path.len() - 1].0, root_pose(&clip.qpos[path[path.len() - 1].1]));
+                let (ours, theirs) = (now.0, root_pose(&clip.qpos[now.1]));
                 offset_sum += (ours[0] - theirs[0]).hypot(ours[1] - theirs[1]);
                 heading_sum += flowmimic_geom::wrap_angle(ours[2] - theirs[2]).abs();
             }
