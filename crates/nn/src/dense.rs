@@ -3,11 +3,16 @@
 
 use rayon::prelude::*;
 
+use crate::small;
+
 /// Multiply-adds above which a product is split by rows over rayon's threads. Below it one
 /// thread is faster: `matrixmultiply`'s own threading (which splits small products too, on
 /// threads of its own beside rayon's) and a split of the columns both made the batch-1 guided
 /// control step slower on 2 cores (README, Latency).
 const PARALLEL_WORK: usize = 1 << 21;
+
+/// Rows up to which a dense layer runs on the direct kernels of `small` instead of SGEMM.
+const SMALL_ROWS: usize = 32;
 
 /// `c = a b + beta c` for an m x k matrix `a` and a k x n matrix `b` given as (slice, row
 /// stride, column stride); `c` is m x n row-major. Large products are split into blocks of rows
@@ -70,6 +75,9 @@ fn serial_gemm(
 
 /// `y[r][o] = x[r][..] . w[o][..] + b[o]` for `rows` rows; `w` is `[outputs][inputs]`.
 pub(crate) fn forward(x: &[f32], rows: usize, w: &[f32], b: &[f32], inputs: usize) -> Vec<f32> {
+    if rows <= SMALL_ROWS && small::available() {
+        return small::forward(x, rows, w, b, inputs);
+    }
     let outputs = b.len();
     debug_assert_eq!(w.len(), inputs * outputs);
     let mut y: Vec<f32> = (0..rows).flat_map(|_| b.iter().copied()).collect();
@@ -97,6 +105,9 @@ pub(crate) fn backward(
 
 /// `dX = dY W`: the gradient with respect to the layer's input alone.
 pub(crate) fn input_grad(dy: &[f32], rows: usize, w: &[f32], inputs: usize) -> Vec<f32> {
+    if rows <= SMALL_ROWS && small::available() {
+        return small::input_grad(dy, rows, w, inputs);
+    }
     let outputs = w.len() / inputs;
     let mut dx = vec![0.0; rows * inputs];
     gemm(rows, outputs, inputs, (dy, outputs as isize, 1), (w, inputs as isize, 1), &mut dx, 0.0);

@@ -1,9 +1,11 @@
 //! Neural-network pieces written by hand for the CPU: the PPO experts' actor and critic (an
 //! MLP), the trajectory model's Transformer, and Adam. Forward and backward passes run on
-//! SGEMM and are checked against finite differences.
+//! SGEMM (products of a few rows on direct AVX2/FMA kernels) and are checked against finite
+//! differences.
 
 mod dense;
 pub mod mlp;
+mod small;
 pub mod transformer;
 
 pub use mlp::{Adam, Mlp, Tape, sgemm_gflops};

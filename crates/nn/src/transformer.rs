@@ -197,6 +197,20 @@ fn gelu_grad(x: f32) -> f32 {
     0.5 * (1.0 + th) + 0.5 * x * (1.0 - th * th) * GELU_C * (1.0 + 3.0 * 0.044715 * x * x)
 }
 
+/// A dot product kept in eight running sums, which the compiler holds in vector registers
+/// (one running sum would force it to add the products one by one, in order).
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    let (ac, bc) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f32 = ac.remainder().iter().zip(bc.remainder()).map(|(x, y)| x * y).sum();
+    let mut acc = [0f32; 8];
+    for (x, y) in ac.zip(bc) {
+        for j in 0..8 {
+            acc[j] += x[j] * y[j];
+        }
+    }
+    acc.iter().sum::<f32>() + tail
+}
+
 fn layer_norm(x: &[f32], d: usize, gamma: &[f32], beta: &[f32]) -> (Vec<f32>, Norm) {
     let rows = x.len() / d;
     let mut xhat = vec![0.0; x.len()];
@@ -374,8 +388,7 @@ impl Transformer {
                     let row = &mut p[a * l..(a + 1) * l];
                     let qa = &qkv[a * 3 * d + q..a * 3 * d + q + dh];
                     for b in 0..l {
-                        let kb = &qkv[b * 3 * d + k..b * 3 * d + k + dh];
-                        row[b] = scale * qa.iter().zip(kb).map(|(x, y)| x * y).sum::<f32>();
+                        row[b] = scale * dot(qa, &qkv[b * 3 * d + k..b * 3 * d + k + dh]);
                     }
                     let max = row.iter().copied().fold(f32::NEG_INFINITY, f32::max);
                     row.iter_mut().for_each(|x| *x = (*x - max).exp());
@@ -402,7 +415,7 @@ impl Transformer {
         dqkv.par_chunks_mut(l * 3 * d).enumerate().for_each(|(i, dqkv)| {
             let qkv = &qkv[i * l * 3 * d..(i + 1) * l * 3 * d];
             let d_out = &d_out[i * l * d..(i + 1) * l * d];
-            let mut ds = vec![0.0; l];
+            let (mut ds, mut dq) = (vec![0.0; l], vec![0.0; dh]);
             for head in 0..heads {
                 let (q, k, v) = (head * dh, d + head * dh, 2 * d + head * dh);
                 let p = &probs[(i * heads + head) * l * l..(i * heads + head + 1) * l * l];
@@ -411,20 +424,23 @@ impl Transformer {
                     let go = &d_out[a * d + head * dh..a * d + (head + 1) * dh];
                     // dP[a][b] = dO[a] . V[b]; dV[b] += P[a][b] dO[a].
                     for b in 0..l {
-                        let vb = &qkv[b * 3 * d + v..b * 3 * d + v + dh];
-                        ds[b] = go.iter().zip(vb).map(|(x, y)| x * y).sum();
+                        ds[b] = dot(go, &qkv[b * 3 * d + v..b * 3 * d + v + dh]);
                         let dv = &mut dqkv[b * 3 * d + v..b * 3 * d + v + dh];
                         dv.iter_mut().zip(go).for_each(|(dv, g)| *dv += row[b] * g);
                     }
                     // Softmax backward, then the scaled dot product.
-                    let dot: f32 = row.iter().zip(&ds).map(|(p, g)| p * g).sum();
+                    let mean = dot(row, &ds);
+                    let qa = &qkv[a * 3 * d + q..a * 3 * d + q + dh];
+                    dq.fill(0.0);
                     for b in 0..l {
-                        let g = scale * row[b] * (ds[b] - dot);
-                        for j in 0..dh {
-                            dqkv[a * 3 * d + q + j] += g * qkv[b * 3 * d + k + j];
-                            dqkv[b * 3 * d + k + j] += g * qkv[a * 3 * d + q + j];
-                        }
+                        let g = scale * row[b] * (ds[b] - mean);
+                        let kb = &qkv[b * 3 * d + k..b * 3 * d + k + dh];
+                        dq.iter_mut().zip(kb).for_each(|(dq, k)| *dq += g * k);
+                        let dk = &mut dqkv[b * 3 * d + k..b * 3 * d + k + dh];
+                        dk.iter_mut().zip(qa).for_each(|(dk, q)| *dk += g * q);
                     }
+                    let dqa = &mut dqkv[a * 3 * d + q..a * 3 * d + q + dh];
+                    dqa.iter_mut().zip(&dq).for_each(|(a, g)| *a += g);
                 }
             }
         });
