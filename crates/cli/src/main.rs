@@ -21,6 +21,12 @@ use config::Config;
 use flowmimic_sim::{Humanoid, NUM_DOFS, STATE_DIM, bench, mjcf, skeleton};
 use std::path::PathBuf;
 
+/// mimalloc instead of the system allocator: glibc hands the model's per-step buffers (tapes of
+/// hundreds of KB to MB) back to the kernel on every free and page-faults them in again on the
+/// next step (README, Benchmarks).
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 #[derive(Parser)]
 #[command(name = "flowmimic", version, about = "Fast, steerable humanoid control: motion capture -> tracking experts -> \
 Flow Matching trajectory model -> guided controller.", long_about = None)]

@@ -1,5 +1,7 @@
-//! Dense layers on `matrixmultiply`'s SGEMM, row-major: the forward product and its backward,
-//! shared by the MLP and the Transformer.
+//! Dense layers, row-major: the forward product and its backward, shared by the MLP and the
+//! Transformer. The forward product and the input gradient run on the direct kernels of
+//! `small` where the CPU has them, the weight gradient (a sum over rows) on `matrixmultiply`'s
+//! SGEMM.
 
 use rayon::prelude::*;
 
@@ -10,9 +12,6 @@ use crate::small;
 /// threads of its own beside rayon's) and a split of the columns both made the batch-1 guided
 /// control step slower on 2 cores (README, Latency).
 const PARALLEL_WORK: usize = 1 << 21;
-
-/// Rows up to which a dense layer runs on the direct kernels of `small` instead of SGEMM.
-const SMALL_ROWS: usize = 32;
 
 /// `c = a b + beta c` for an m x k matrix `a` and a k x n matrix `b` given as (slice, row
 /// stride, column stride); `c` is m x n row-major. Large products are split into blocks of rows
@@ -75,14 +74,35 @@ fn serial_gemm(
 
 /// `y[r][o] = x[r][..] . w[o][..] + b[o]` for `rows` rows; `w` is `[outputs][inputs]`.
 pub(crate) fn forward(x: &[f32], rows: usize, w: &[f32], b: &[f32], inputs: usize) -> Vec<f32> {
-    if rows <= SMALL_ROWS && small::available() {
-        return small::forward(x, rows, w, b, inputs);
-    }
     let outputs = b.len();
     debug_assert_eq!(w.len(), inputs * outputs);
+    if small::available() {
+        let mut y = vec![0.0; rows * outputs];
+        by_rows((x, inputs), (&mut y, outputs), rows, |x, n, y| small::forward(x, n, w, b, inputs, y));
+        return y;
+    }
     let mut y: Vec<f32> = (0..rows).flat_map(|_| b.iter().copied()).collect();
     gemm(rows, inputs, outputs, (x, inputs as isize, 1), (w, 1, inputs as isize), &mut y, 1.0);
     y
+}
+
+/// Runs a row-by-row `kernel(a_rows, rows, c_rows)` over `rows` rows of `a` (`a_width` wide)
+/// and `c` (`c_width` wide): in one call, or split into one block of rows per rayon thread when
+/// the product is large enough to pay for the split. Each row's result is the same either way.
+fn by_rows(
+    (a, a_width): (&[f32], usize),
+    (c, c_width): (&mut [f32], usize),
+    rows: usize,
+    kernel: impl Fn(&[f32], usize, &mut [f32]) + Sync,
+) {
+    let threads = rayon::current_num_threads();
+    if threads == 1 || rows < 8 * threads || rows * a_width * c_width < PARALLEL_WORK {
+        return kernel(a, rows, c);
+    }
+    let block = rows.div_ceil(threads);
+    c[..rows * c_width].par_chunks_mut(block * c_width).enumerate().for_each(|(i, c)| {
+        kernel(&a[i * block * a_width..], c.len() / c_width, c);
+    });
 }
 
 /// Accumulates `dW += dY^T X`, `db += sum_r dY` and returns `dX = dY W` when asked.
@@ -105,12 +125,13 @@ pub(crate) fn backward(
 
 /// `dX = dY W`: the gradient with respect to the layer's input alone.
 pub(crate) fn input_grad(dy: &[f32], rows: usize, w: &[f32], inputs: usize) -> Vec<f32> {
-    if rows <= SMALL_ROWS && small::available() {
-        return small::input_grad(dy, rows, w, inputs);
-    }
     let outputs = w.len() / inputs;
     let mut dx = vec![0.0; rows * inputs];
-    gemm(rows, outputs, inputs, (dy, outputs as isize, 1), (w, inputs as isize, 1), &mut dx, 0.0);
+    if small::available() {
+        by_rows((dy, outputs), (&mut dx, inputs), rows, |dy, n, dx| small::input_grad(dy, n, w, inputs, dx));
+    } else {
+        gemm(rows, outputs, inputs, (dy, outputs as isize, 1), (w, inputs as isize, 1), &mut dx, 0.0);
+    }
     dx
 }
 
@@ -145,5 +166,21 @@ mod tests {
             });
             assert_eq!(serial, split);
         }
+    }
+
+    #[test]
+    fn dense_layers_split_over_threads_equal_one_thread() {
+        let (rows, inputs, outputs) = (300, 96, 80);
+        let value = |i: usize| ((i * 29) % 97) as f32 / 48.0 - 1.0;
+        let x: Vec<f32> = (0..rows * inputs).map(value).collect();
+        let w: Vec<f32> = (0..outputs * inputs).map(|i| value(i + 7)).collect();
+        let b: Vec<f32> = (0..outputs).map(value).collect();
+        let dy: Vec<f32> = (0..rows * outputs).map(|i| value(i + 3)).collect();
+        assert!(rows * inputs * outputs >= PARALLEL_WORK, "large enough to split");
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| (forward(&x, rows, &w, &b, inputs), input_grad(&dy, rows, &w, inputs)))
+        };
+        assert_eq!(run(1), run(3));
     }
 }

@@ -1,8 +1,8 @@
-//! Direct kernels for products of a few rows against a weight matrix: one sample's tokens in
-//! the batch-1 control step. SGEMM packs both operands on every call; with a handful of rows
-//! the packing of the weights cost a quarter of the guided control step (perf, README
-//! "Latency"), so these read the weights where they lie. They need AVX2 and FMA; elsewhere the
-//! callers keep SGEMM.
+//! Direct kernels for the products of a dense layer's forward pass and its input gradient. SGEMM
+//! packs both operands on every call; with one sample's 13-21 rows the packing of the weights
+//! cost a quarter of the guided control step (perf, README "Benchmarks"), so these read the
+//! weights where they lie. Larger batches are split into blocks of rows over rayon's threads by
+//! the caller. They need AVX2 and FMA; elsewhere the callers keep SGEMM.
 
 /// Rows that share each weight chunk loaded.
 const ROWS: usize = 4;
@@ -19,31 +19,35 @@ pub(crate) fn available() -> bool {
     }
 }
 
-/// `y[r][o] = x[r][..] . w[o][..] + b[o]`; `x` is rows x inputs, `w` outputs x inputs.
-pub(crate) fn forward(x: &[f32], rows: usize, w: &[f32], b: &[f32], inputs: usize) -> Vec<f32> {
+/// `y[r][o] = x[r][..] . w[o][..] + b[o]` into `y` (rows x outputs); `x` is rows x inputs, `w`
+/// outputs x inputs.
+pub(crate) fn forward(x: &[f32], rows: usize, w: &[f32], b: &[f32], inputs: usize, y: &mut [f32]) {
     assert!(available(), "the direct kernels need AVX2 and FMA");
-    assert!(x.len() >= rows * inputs && w.len() == b.len() * inputs, "forward operands do not match");
-    let mut y = vec![0.0; rows * b.len()];
+    assert!(
+        x.len() >= rows * inputs && w.len() == b.len() * inputs && y.len() >= rows * b.len(),
+        "forward operands do not match"
+    );
     #[cfg(target_arch = "x86_64")]
     // SAFETY: the CPU has AVX2 and FMA, and the operands' sizes were checked above.
     unsafe {
-        avx2::forward(x, rows, w, b, inputs, &mut y)
+        avx2::forward(x, rows, w, b, inputs, y)
     };
-    y
 }
 
-/// `dx[r][i] = sum_o dy[r][o] w[o][i]`: the gradient of a dense layer with respect to its input.
-pub(crate) fn input_grad(dy: &[f32], rows: usize, w: &[f32], inputs: usize) -> Vec<f32> {
+/// `dx[r][i] = sum_o dy[r][o] w[o][i]` into `dx` (rows x inputs): the gradient of a dense
+/// layer with respect to its input.
+pub(crate) fn input_grad(dy: &[f32], rows: usize, w: &[f32], inputs: usize, dx: &mut [f32]) {
     assert!(available(), "the direct kernels need AVX2 and FMA");
     let outputs = w.len() / inputs;
-    assert!(dy.len() >= rows * outputs && w.len() == outputs * inputs, "input-gradient operands do not match");
-    let mut dx = vec![0.0; rows * inputs];
+    assert!(
+        dy.len() >= rows * outputs && w.len() == outputs * inputs && dx.len() >= rows * inputs,
+        "input-gradient operands do not match"
+    );
     #[cfg(target_arch = "x86_64")]
     // SAFETY: the CPU has AVX2 and FMA, and the operands' sizes were checked above.
     unsafe {
-        avx2::input_grad(dy, rows, w, inputs, &mut dx)
+        avx2::input_grad(dy, rows, w, inputs, dx)
     };
-    dx
 }
 
 /// The kernels on AVX2 registers. Their callers check the operands' sizes; inside, the loads
@@ -214,7 +218,9 @@ mod tests {
             let mut y = b.repeat(rows);
             crate::dense::gemm(rows, inputs, outputs, (&x, inputs as isize, 1), (&w, 1, inputs as isize), &mut y, 1.0);
             let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(a, b)| (a - b).abs() <= 1e-5 * (1.0 + b.abs()));
-            assert!(close(&forward(&x, rows, &w, &b, inputs), &y), "forward {rows} x {inputs} -> {outputs}");
+            let mut direct = vec![0.0; rows * outputs];
+            forward(&x, rows, &w, &b, inputs, &mut direct);
+            assert!(close(&direct, &y), "forward {rows} x {inputs} -> {outputs}");
             let dy = values(rows * outputs, 4);
             let mut dx = vec![0.0; rows * inputs];
             crate::dense::gemm(
@@ -226,7 +232,9 @@ mod tests {
                 &mut dx,
                 0.0,
             );
-            assert!(close(&input_grad(&dy, rows, &w, inputs), &dx), "input gradient {rows} x {outputs} -> {inputs}");
+            let mut direct = vec![0.0; rows * inputs];
+            input_grad(&dy, rows, &w, inputs, &mut direct);
+            assert!(close(&direct, &dx), "input gradient {rows} x {outputs} -> {inputs}");
         }
     }
 }
