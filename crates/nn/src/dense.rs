@@ -10,7 +10,7 @@ use crate::small;
 /// Multiply-adds above which a product is split by rows over rayon's threads. Below it one
 /// thread is faster: `matrixmultiply`'s own threading (which splits small products too, on
 /// threads of its own beside rayon's) and a split of the columns both made the batch-1 guided
-/// control step slower on 2 cores (README, Latency).
+/// control step slower on 2 cores (README, Benchmarks).
 const PARALLEL_WORK: usize = 1 << 21;
 
 /// `c = a b + beta c` for an m x k matrix `a` and a k x n matrix `b` given as (slice, row
