@@ -27,14 +27,8 @@ pub(crate) fn gemm(
 ) {
     assert!(c.len() >= m * n, "output too small for {m} x {n}");
     assert!(a.1 >= 0 && a.2 >= 0 && b.1 >= 0 && b.2 >= 0, "negative strides");
-    let threads = rayon::current_num_threads();
-    if threads == 1 || m < 8 * threads || m * k * n < PARALLEL_WORK {
-        return serial_gemm(m, k, n, a, b, c, beta);
-    }
-    let rows = m.div_ceil(threads);
-    c[..m * n].par_chunks_mut(rows * n).enumerate().for_each(|(i, c)| {
-        let block = (&a.0[i * rows * a.1 as usize..], a.1, a.2);
-        serial_gemm(c.len() / n, k, n, block, b, c, beta);
+    by_rows((a.0, a.1 as usize), (c, n), m, m * k * n, |a_rows, rows, c| {
+        serial_gemm(rows, k, n, (a_rows, a.1, a.2), b, c, beta)
     });
 }
 
@@ -78,7 +72,8 @@ pub(crate) fn forward(x: &[f32], rows: usize, w: &[f32], b: &[f32], inputs: usiz
     debug_assert_eq!(w.len(), inputs * outputs);
     if small::available() {
         let mut y = vec![0.0; rows * outputs];
-        by_rows((x, inputs), (&mut y, outputs), rows, |x, n, y| small::forward(x, n, w, b, inputs, y));
+        let work = rows * inputs * outputs;
+        by_rows((x, inputs), (&mut y, outputs), rows, work, |x, n, y| small::forward(x, n, w, b, inputs, y));
         return y;
     }
     let mut y: Vec<f32> = (0..rows).flat_map(|_| b.iter().copied()).collect();
@@ -86,22 +81,24 @@ pub(crate) fn forward(x: &[f32], rows: usize, w: &[f32], b: &[f32], inputs: usiz
     y
 }
 
-/// Runs a row-by-row `kernel(a_rows, rows, c_rows)` over `rows` rows of `a` (`a_width` wide)
-/// and `c` (`c_width` wide): in one call, or split into one block of rows per rayon thread when
-/// the product is large enough to pay for the split. Each row's result is the same either way.
+/// Runs a row-by-row `kernel(a_rows, rows, c_rows)` over `rows` rows of `a` (one every
+/// `a_stride` elements) and `c` (`c_width` wide): in one call, or split into one block of rows
+/// per rayon thread when the product's `work` (multiply-adds) pays for the split. Each row's
+/// result is the same either way.
 fn by_rows(
-    (a, a_width): (&[f32], usize),
+    (a, a_stride): (&[f32], usize),
     (c, c_width): (&mut [f32], usize),
     rows: usize,
+    work: usize,
     kernel: impl Fn(&[f32], usize, &mut [f32]) + Sync,
 ) {
     let threads = rayon::current_num_threads();
-    if threads == 1 || rows < 8 * threads || rows * a_width * c_width < PARALLEL_WORK {
+    if threads == 1 || rows < 8 * threads || work < PARALLEL_WORK {
         return kernel(a, rows, c);
     }
     let block = rows.div_ceil(threads);
     c[..rows * c_width].par_chunks_mut(block * c_width).enumerate().for_each(|(i, c)| {
-        kernel(&a[i * block * a_width..], c.len() / c_width, c);
+        kernel(&a[i * block * a_stride..], c.len() / c_width, c);
     });
 }
 
@@ -128,7 +125,8 @@ pub(crate) fn input_grad(dy: &[f32], rows: usize, w: &[f32], inputs: usize) -> V
     let outputs = w.len() / inputs;
     let mut dx = vec![0.0; rows * inputs];
     if small::available() {
-        by_rows((dy, outputs), (&mut dx, inputs), rows, |dy, n, dx| small::input_grad(dy, n, w, inputs, dx));
+        let work = rows * inputs * outputs;
+        by_rows((dy, outputs), (&mut dx, inputs), rows, work, |dy, n, dx| small::input_grad(dy, n, w, inputs, dx));
     } else {
         gemm(rows, outputs, inputs, (dy, outputs as isize, 1), (w, inputs as isize, 1), &mut dx, 0.0);
     }

@@ -1,7 +1,7 @@
 //! Neural-network pieces written by hand for the CPU: the PPO experts' actor and critic (an
 //! MLP), the trajectory model's Transformer, and Adam. Forward and backward passes run on
-//! SGEMM (products of a few rows on direct AVX2/FMA kernels) and are checked against finite
-//! differences.
+//! direct AVX2/FMA kernels where the CPU has them and on SGEMM otherwise (weight gradients
+//! always), and are checked against finite differences.
 
 mod dense;
 pub mod mlp;
