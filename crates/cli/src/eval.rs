@@ -5,7 +5,7 @@ use crate::progress::Progress;
 use crate::run::start_clip;
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
-use flowmimic_control::StepReport;
+use flowmimic_control::{Adaptive, StepReport};
 use flowmimic_eval::experiments::{Study, Trials};
 use flowmimic_eval::sweep::{EvalModel, Rows};
 use flowmimic_model::Gradient;
@@ -42,12 +42,23 @@ pub struct Common {
     /// Solver steps that apply guidance, `start:end` (default: all but the last quarter).
     #[arg(long, value_parser = parse_interval)]
     guidance_interval: Option<(usize, usize)>,
+    /// Adaptive guidance: each environment's scale becomes w times its executed joystick error
+    /// over the last half second (m/s and rad/s) divided by this reference error, within w/4
+    /// and w; other tasks keep w (default: the fixed scale w throughout).
+    #[arg(long, value_parser = crate::eval::parse_adaptive)]
+    adaptive: Option<Adaptive>,
 }
 
 /// `start:end` with start < end: the solver steps guidance acts on.
 pub(crate) fn parse_interval(text: &str) -> Result<(usize, usize), String> {
     let parsed = text.split_once(':').and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)));
     parsed.filter(|(a, b)| a < b).ok_or_else(|| format!("'{text}': use start:end with start < end"))
+}
+
+/// A reference error for adaptive guidance (> 0).
+pub(crate) fn parse_adaptive(text: &str) -> Result<Adaptive, String> {
+    let value: f32 = text.parse().map_err(|_| format!("'{text}': not a number"))?;
+    Adaptive::new(value).map_err(|e| e.to_string())
 }
 
 /// `through-network` or `cost-only`.
@@ -59,7 +70,18 @@ impl Common {
     /// Settings for a programmatic run (the pipeline): models as LABEL=DIR.
     pub fn new(models: Vec<String>, out: PathBuf, quick: bool) -> Self {
         let gradient = Gradient::default();
-        Self { models, out, quick, trials: None, seed: 0, execute: 1, clip: None, gradient, guidance_interval: None }
+        Self {
+            models,
+            out,
+            quick,
+            trials: None,
+            seed: 0,
+            execute: 1,
+            clip: None,
+            gradient,
+            guidance_interval: None,
+            adaptive: None,
+        }
     }
 }
 
@@ -215,6 +237,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         execute: common.execute,
         gradient: common.gradient,
         guidance_steps: common.guidance_interval,
+        adaptive: common.adaptive,
         progress: &with_progress,
     };
     lib(match &cmd {

@@ -2,7 +2,7 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use flowmimic_control::{ControlConfig, Hand, JoystickSegment, Rollout, StepReport, Task};
+use flowmimic_control::{Adaptive, ControlConfig, Hand, JoystickSegment, Rollout, StepReport, Task};
 use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_serve::play::PlayConfig;
@@ -58,6 +58,11 @@ pub struct RunArgs {
     /// Solver steps that apply guidance, `start:end` (default: all but the last quarter).
     #[arg(long, value_parser = crate::eval::parse_interval)]
     pub guidance_interval: Option<(usize, usize)>,
+    /// Adaptive guidance: each environment's scale becomes w times its executed joystick error
+    /// over the last half second (m/s and rad/s) divided by this reference error, within w/4
+    /// and w; other tasks keep w (default: the fixed scale w throughout).
+    #[arg(long, value_parser = crate::eval::parse_adaptive)]
+    pub adaptive: Option<Adaptive>,
     #[arg(long, default_value_t = 10.0)]
     pub seconds: f64,
     /// Actions of each sampled trajectory to execute before sampling again (1 = the paper's
@@ -142,6 +147,7 @@ impl RunArgs {
             nfe: self.nfe,
             guidance_scale: self.guidance_scale,
             gradient: self.gradient,
+            adaptive: self.adaptive,
             guidance_steps: self.guidance_interval,
             seconds: self.seconds,
             execute: self.execute,

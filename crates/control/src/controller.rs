@@ -2,11 +2,12 @@
 //! given each environment's last N states and actions (one batched model call for all
 //! environments), steer it with the task's cost, execute its first action, repeat.
 
+use crate::adapt::{Adaptive, Recent};
 use crate::history::History;
 use crate::rollout::{Rollout, RolloutInfo};
 use crate::task::Task;
 use crate::{ControlError, Layout};
-use flowmimic_geom::CharFrame;
+use flowmimic_geom::{CharFrame, heading};
 use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_sim::{CONTROL_HZ, Env, Humanoid, NUM_DOFS};
@@ -28,6 +29,10 @@ pub struct ControlConfig {
     /// cost only.
     #[serde(default)]
     pub gradient: Gradient,
+    /// Adaptive guidance: each environment's scale follows its executed error
+    /// ([`crate::adapt`]); `None`: `w` throughout.
+    #[serde(default)]
+    pub adaptive: Option<Adaptive>,
     /// Solver steps [start, end) that apply guidance; default: all but the last quarter (the
     /// paper guides 15 of 20).
     pub guidance_steps: Option<(usize, usize)>,
@@ -53,6 +58,7 @@ impl ControlConfig {
             nfe,
             guidance_scale,
             gradient: Gradient::ThroughNetwork,
+            adaptive: None,
             guidance_steps: None,
             seconds,
             execute: 1,
@@ -115,6 +121,8 @@ pub struct Controller<'m> {
     config: ControlConfig,
     envs: Vec<Env>,
     histories: Vec<History>,
+    /// Each environment's last half second of pelvis poses, for adaptive guidance.
+    recent: Vec<Recent>,
     /// Each environment's current plan (physical units) and how many of its actions ran.
     plans: Vec<Option<(Vec<f32>, usize)>>,
     alive: Vec<bool>,
@@ -172,6 +180,7 @@ impl<'m> Controller<'m> {
             config: config.clone(),
             envs: (0..envs).map(|_| humanoid.env()).collect(),
             histories: (0..envs).map(|_| History::new(model.layout().spec)).collect(),
+            recent: vec![Recent::default(); envs],
             plans: vec![None; envs],
             alive: vec![true; envs],
             rng: StdRng::seed_from_u64(config.seed),
@@ -194,9 +203,16 @@ impl<'m> Controller<'m> {
         }
         self.histories[e] = History::new(self.model.layout().spec);
         start_from_clip(&mut self.envs[e], &mut self.histories[e], clip, frame, n_hist)?;
+        self.recent[e] = Recent::default();
+        self.remember_pose(e);
         self.plans[e] = None;
         self.alive[e] = true;
         Ok(())
+    }
+
+    fn remember_pose(&mut self, e: usize) {
+        let b = self.envs[e].bodies();
+        self.recent[e].push([b.pos[0].x, b.pos[0].y, heading(b.rot[0])]);
     }
 
     /// Changes the sampler (NFE, scale, gradient, interval) from the next step on.
@@ -252,7 +268,10 @@ impl<'m> Controller<'m> {
                 let (states, actions) = self.histories[e].conditioning();
                 cond.extend(layout.interleave(&states, &actions));
                 let b = self.envs[e].bodies();
-                costs.push(tasks[e].cost(traj, time, &CharFrame::from_root(b.pos[0], b.rot[0]))?);
+                let cost = tasks[e].cost(traj, time, &CharFrame::from_root(b.pos[0], b.rot[0]))?;
+                let factor =
+                    self.config.adaptive.map_or(1.0, |a| a.factor(tasks[e].executed_error(time, &self.recent[e])));
+                costs.push(cost.map(|c| c.scaled(factor)));
             }
             let future_std = &model.norm.std[layout.cond_len()..];
             let grad = |x: &[f32], n: usize| crate::costs::batch_guidance_grad(&costs, future_std, x, n);
@@ -316,6 +335,7 @@ impl<'m> Controller<'m> {
             self.histories[e].act(actions[e].as_ref().expect("acted above"));
             if standing {
                 self.histories[e].observe(&self.envs[e].bodies());
+                self.remember_pose(e);
             } else {
                 self.alive[e] = false;
                 fell.push(e);
@@ -358,6 +378,7 @@ pub fn run(
             guidance_scale: config.guidance_scale,
             guidance_steps: config.guidance_steps(),
             gradient: config.gradient,
+            adaptive: config.adaptive,
             tasks: tasks.clone(),
             seed: config.seed,
             start: format!("clip '{}'", clip.name),

@@ -273,6 +273,12 @@ impl Sum {
         self.terms.push((weight, Box::new(cost)));
         self
     }
+
+    /// Every term's weight times `factor` (adaptive guidance, [`crate::adapt`]).
+    pub fn scaled(mut self, factor: f32) -> Self {
+        self.terms.iter_mut().for_each(|(w, _)| *w *= factor);
+        self
+    }
 }
 
 impl Sum {

@@ -5,9 +5,11 @@
 //! - [`rollout`]: the file a run writes (`flowmimic-rollout/1`);
 //! - [`layout`]: where the predicted actions and states sit in a trajectory;
 //! - [`history`]: the live conditioning `O_t`, built exactly as the training windows are;
+//! - [`adapt`]: adaptive guidance, a scale that follows the executed error;
 //! - [`costs`]: joystick velocity (paper eq. 7) and heading, end-effector reach (eq. 8),
 //!   waypoint navigation (BeyondMimic), and weighted sums.
 
+pub mod adapt;
 pub mod controller;
 pub mod costs;
 pub mod history;
@@ -15,6 +17,7 @@ pub mod layout;
 pub mod rollout;
 pub mod task;
 
+pub use adapt::Adaptive;
 pub use controller::{ControlConfig, Controller, StepOutcome, StepReport, run, start_from_clip};
 pub use costs::{Cost, Heading, Joystick, Pursuit, Reach, Sum};
 pub use history::History;

@@ -41,6 +41,9 @@ pub struct RolloutInfo {
     /// How the guidance gradient was taken (files written before the choice: cost only).
     #[serde(default = "cost_only")]
     pub gradient: flowmimic_model::Gradient,
+    /// Adaptive guidance's reference error (`None`: the fixed scale).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub adaptive: Option<crate::Adaptive>,
     pub tasks: Vec<Task>,
     pub seed: u64,
     pub start: String,

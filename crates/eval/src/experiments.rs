@@ -5,7 +5,7 @@
 use crate::protocols::{self, Bench, Point};
 use crate::sweep::{EvalModel, Experiment, Result, Rows, Summary, finish, sweep};
 use crate::{frechet_distance, gaussian};
-use flowmimic_control::{Hand, JoystickSegment, StepReport, Task};
+use flowmimic_control::{Adaptive, Hand, JoystickSegment, StepReport, Task};
 use flowmimic_data::Dataset;
 use flowmimic_model::Gradient;
 use flowmimic_motion::Clip;
@@ -38,6 +38,8 @@ pub struct Study<'a> {
     pub gradient: Gradient,
     /// Guided solver steps `start..end` (`None`: all but the last quarter).
     pub guidance_steps: Option<(usize, usize)>,
+    /// Adaptive guidance's reference error (`None`: the fixed scale).
+    pub adaptive: Option<Adaptive>,
     pub progress: &'a WithProgress<'a>,
 }
 
@@ -52,8 +54,8 @@ impl Study<'_> {
     }
 
     fn point(&self, nfe: usize, scale: f32) -> Point {
-        let guidance_steps = self.guidance_steps;
-        Point { nfe, scale, execute: self.execute, seed: self.seed, gradient: self.gradient, guidance_steps }
+        let (guidance_steps, adaptive) = (self.guidance_steps, self.adaptive);
+        Point { nfe, scale, execute: self.execute, seed: self.seed, gradient: self.gradient, guidance_steps, adaptive }
     }
 
     fn by_nfe(&self, nfe: &[usize]) -> Vec<Point> {
@@ -440,7 +442,7 @@ impl Study<'_> {
                 for gradient in [Gradient::ThroughNetwork, Gradient::CostOnly] {
                     for &scale in scales {
                         let guidance_steps = self.guidance_steps;
-                        let point = Point { nfe, scale, execute: 1, seed: 0, gradient, guidance_steps };
+                        let point = Point { nfe, scale, execute: 1, seed: 0, gradient, guidance_steps, adaptive: None };
                         let e = protocols::guidance_effect(&m.bench(self.humanoid, self.clip), task, point, samples)?;
                         let g = serde_json::to_string(&gradient)?;
                         println!(

@@ -2,7 +2,7 @@
 //! with all trials batched into one set of environments.
 
 use crate::{composition_success, reach_errors, velocity_rmse};
-use flowmimic_control::{ControlConfig, ControlError, Hand, Rollout, StepReport, Task, controller};
+use flowmimic_control::{Adaptive, ControlConfig, ControlError, Hand, Rollout, StepReport, Task, controller};
 use flowmimic_geom::{DVec3, heading, quat_from_wxyz, wrap_angle, yaw_quat};
 use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_motion::Clip;
@@ -35,6 +35,9 @@ pub struct Point {
     /// Guided solver steps `start..end`; `None`: the controller's default.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub guidance_steps: Option<(usize, usize)>,
+    /// Adaptive guidance's reference error; `None`: the fixed scale.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub adaptive: Option<Adaptive>,
 }
 
 impl Bench<'_> {
@@ -50,6 +53,7 @@ impl Bench<'_> {
             nfe: point.nfe,
             guidance_scale: point.scale,
             gradient: point.gradient,
+            adaptive: point.adaptive,
             guidance_steps: point.guidance_steps,
             seconds,
             execute: point.execute,

@@ -79,7 +79,10 @@ impl Store {
         let (nfe, w, k, seed) = (point.nfe, point.scale, point.execute, point.seed);
         let g = serde_json::to_string(&point.gradient).expect("json");
         // A non-default guidance interval is a different point; the default keeps older keys.
-        let steps = point.guidance_steps.map(|(a, b)| format!("\0guided steps {a}..{b}")).unwrap_or_default();
+        let mut steps = point.guidance_steps.map(|(a, b)| format!("\0guided steps {a}..{b}")).unwrap_or_default();
+        if let Some(a) = point.adaptive {
+            steps += &format!("\0adaptive {}", a.reference);
+        }
         let inputs = format!("{:x}", Sha256::digest(format!("{}\0{settings}{steps}", m.content)));
         let model = format!("{}@{}", m.label, &inputs[..12]);
         format!("{model},{},{h},{nfe},{w},{},{k},{seed}", m.model.objective.name(), g.trim_matches('"'))

@@ -20,6 +20,7 @@ fn rollout(steps: usize, yaw_rate: f64, turn: f64, fall: usize) -> Rollout {
             guidance_scale: 0.0,
             guidance_steps: (0, 1),
             gradient: Default::default(),
+            adaptive: None,
             tasks: vec![task.clone()],
             seed: 0,
             start: "test".into(),

@@ -483,6 +483,7 @@ impl Simulation<'_> {
             guidance_scale: c.guidance_scale,
             guidance_steps: c.guidance_steps(),
             gradient: c.gradient,
+            adaptive: c.adaptive,
             tasks: vec![r.task],
             seed: c.seed,
             start: format!("clip '{}', live play", self.clip.name),
