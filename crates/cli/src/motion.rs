@@ -2,7 +2,9 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
-use flowmimic_motion::{Clip, Coverage, GaitParams, ImportOptions, Units, UpAxis, WanderParams, coverage, generator};
+use flowmimic_motion::{
+    Clip, Coverage, GaitParams, ImportOptions, Segment, Units, UpAxis, WanderParams, coverage, generator,
+};
 use flowmimic_plot::{Chart, Series, histogram};
 use flowmimic_sim::Humanoid;
 use std::path::{Path, PathBuf};
@@ -51,6 +53,11 @@ pub enum MotionCommand {
         /// than --duration are not used).
         #[arg(long)]
         wander: bool,
+        /// One walk that follows a command schedule instead of the gait flags, `run`'s syntax:
+        /// `seconds:vx,vy,yaw_rate` segments joined by `;` (forward, left m/s; rad/s), each
+        /// blended into the next over 1 s, e.g. "2:1,0,0;3:-0.5,0,0;3:0.9,0,0".
+        #[arg(long, conflicts_with_all = ["wander", "count"])]
+        schedule: Option<String>,
         /// Seed of the random walks.
         #[arg(long, default_value_t = 0)]
         seed: u64,
@@ -200,10 +207,17 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
             header();
             clips.iter().for_each(|c| row(humanoid, c));
         }
-        MotionCommand::Generate { gait, count, wander, seed, name, out } => {
+        MotionCommand::Generate { gait, count, wander, schedule, seed, name, out } => {
             header();
             let mut clips = Vec::new();
-            if wander {
+            if let Some(text) = schedule {
+                let segments: Vec<Segment> = crate::run::schedule(&text)?
+                    .into_iter()
+                    .map(|s| Segment { seconds: s.seconds, speed: s.vx, lateral: s.vy, turn_rate: s.yaw_rate })
+                    .collect();
+                let name = name.unwrap_or_else(|| "walk".into());
+                clips.push(flowmimic_motion::scheduled(humanoid, &name, &segments)?.0);
+            } else if wander {
                 let seeds: Vec<u64> = (0..count.unwrap_or(1) as u64).map(|k| seed + k).collect();
                 for s in seeds {
                     let clip_name = match (&name, count) {

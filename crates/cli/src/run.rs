@@ -106,7 +106,7 @@ fn numbers(text: &str, n: usize, what: &str) -> Result<Vec<f64>> {
     Ok(values)
 }
 
-fn schedule(text: &str) -> Result<Vec<JoystickSegment>> {
+pub(crate) fn schedule(text: &str) -> Result<Vec<JoystickSegment>> {
     text.split(';')
         .map(|seg| {
             let (secs, v) =

@@ -173,6 +173,43 @@ impl WanderParams {
     }
 }
 
+/// One command of a scheduled walk, held for `seconds` (velocities in the heading frame: m/s
+/// forward and to the left, rad/s to the left).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Segment {
+    pub seconds: f64,
+    pub speed: f64,
+    pub lateral: f64,
+    pub turn_rate: f64,
+}
+
+/// The schedule of a walk that follows `segments` in order, each blended into the next over
+/// 1 s, at the step frequency people choose for each speed; every segment is checked as a
+/// constant walk would be.
+pub fn scheduled_walk(segments: &[Segment]) -> Result<Schedule, MotionError> {
+    let mut keys = Vec::with_capacity(segments.len());
+    let mut t = 0.0;
+    for s in segments {
+        let command = Command::walk(s.speed, s.lateral, s.turn_rate);
+        let p = GaitParams {
+            speed: s.speed,
+            lateral: s.lateral,
+            turn_rate: s.turn_rate,
+            step_frequency: command.step_frequency,
+            duration: s.seconds,
+            ..Default::default()
+        };
+        p.validate().map_err(|e| MotionError::Invalid(format!("schedule segment {}: {e}", keys.len() + 1)))?;
+        keys.push((t, command));
+        t += s.seconds;
+    }
+    if keys.is_empty() {
+        return Err(MotionError::Invalid("schedule: no segment".into()));
+    }
+    let defaults = GaitParams::default();
+    Ok(Schedule { keys, heading: 0.0, step_height: defaults.step_height, arm_swing: defaults.arm_swing, duration: t })
+}
+
 /// What the walker is told at one instant. Velocities are in the heading frame.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Command {
@@ -508,6 +545,17 @@ pub fn wander(humanoid: &Arc<Humanoid>, name: &str, p: &WanderParams) -> Result<
     p.validate()?;
     let source = serde_json::to_string(p).expect("json");
     retarget(humanoid, &landmarks(&p.schedule())?, name, &format!("generator wander {source}"), false)
+}
+
+/// A generated walk that follows a command schedule (see [`scheduled_walk`]).
+pub fn scheduled(
+    humanoid: &Arc<Humanoid>,
+    name: &str,
+    segments: &[Segment],
+) -> Result<(Clip, RetargetReport), MotionError> {
+    let schedule = scheduled_walk(segments)?;
+    let source = serde_json::to_string(segments).expect("json");
+    retarget(humanoid, &landmarks(&schedule)?, name, &format!("generator schedule {source}"), false)
 }
 
 /// The generated 10 s straight walk at 1 m/s, `walk_straight`: every stage's default clip

@@ -14,7 +14,7 @@ pub mod retarget;
 
 pub use clip::{Clip, Quality};
 pub use coverage::Coverage;
-pub use generator::{Command, GaitParams, Schedule, WanderParams, generate, straight_walk, wander};
+pub use generator::{Command, GaitParams, Schedule, Segment, WanderParams, generate, scheduled, straight_walk, wander};
 
 pub use landmarks::{Units, UpAxis};
 pub use retarget::RetargetReport;

@@ -5,7 +5,9 @@
 
 use flowmimic_geom::{heading, wrap_angle};
 use flowmimic_motion::generator::{self, Schedule};
-use flowmimic_motion::{Clip, Coverage, GaitParams, WanderParams, clip::CONTACT_HEIGHT, generate, wander};
+use flowmimic_motion::{
+    Clip, Coverage, GaitParams, Segment, WanderParams, clip::CONTACT_HEIGHT, generate, scheduled, wander,
+};
 use flowmimic_sim::skeleton::body;
 use flowmimic_sim::{CONTROL_HZ, Humanoid, SimConfig};
 use rand::{Rng, SeedableRng};
@@ -15,7 +17,8 @@ const LEFT_LEG: [usize; 4] = [body::L_HIP, body::L_KNEE, body::L_ANKLE, body::L_
 const RIGHT_LEG: [usize; 4] = [body::R_HIP, body::R_KNEE, body::R_ANKLE, body::R_TOE];
 
 /// Walks from the whole range: any speed forward and back, sideways, turn rate, heading and
-/// step frequency the generator accepts, plus wandering walks.
+/// step frequency the generator accepts, plus wandering walks and a scheduled walk that
+/// reverses from forward to backward and back, turning and sidestepping.
 fn random_walks(h: &Arc<Humanoid>) -> Vec<(Clip, Schedule)> {
     let mut rng = rand::rngs::StdRng::seed_from_u64(7);
     let mut walks = Vec::new();
@@ -37,6 +40,10 @@ fn random_walks(h: &Arc<Humanoid>) -> Vec<(Clip, Schedule)> {
         let p = WanderParams { seed, duration: 30.0 };
         walks.push((wander(h, "wander", &p).unwrap().0, p.schedule()));
     }
+    let seg = |seconds, speed, lateral, turn_rate| Segment { seconds, speed, lateral, turn_rate };
+    let segments =
+        [seg(2.0, 1.0, 0.0, 0.0), seg(3.0, -0.6, 0.0, 0.3), seg(3.0, 1.2, 0.0, -0.5), seg(2.0, 0.1, 0.25, 0.0)];
+    walks.push((scheduled(h, "reversals", &segments).unwrap().0, generator::scheduled_walk(&segments).unwrap()));
     walks
 }
 
@@ -127,4 +134,10 @@ fn impossible_walks_are_refused_quickly() {
     for duration in [0.5, f64::NAN, 1e9] {
         assert!(wander(&h, "w", &WanderParams { seed: 1, duration }).is_err(), "duration {duration}");
     }
+    // A schedule is checked segment by segment, and the error names the segment.
+    let seg = |speed| Segment { seconds: 2.0, speed, lateral: 0.0, turn_rate: 0.0 };
+    let err = scheduled(&h, "s", &[seg(1.0), seg(f64::NAN)]).unwrap_err().to_string();
+    assert!(err.contains("segment 2") && err.contains("finite"), "{err}");
+    assert!(scheduled(&h, "s", &[seg(1.0), seg(-3.0)]).unwrap_err().to_string().contains("speed"));
+    assert!(scheduled(&h, "s", &[]).is_err(), "no segment");
 }
