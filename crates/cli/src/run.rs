@@ -238,14 +238,12 @@ pub fn play(
     humanoid: &Arc<Humanoid>,
     model_dir: &Path,
     port: u16,
-    nfe: usize,
-    guidance_scale: f32,
+    control: ControlConfig,
     clip: Option<&Path>,
     record_dir: PathBuf,
 ) -> Result<()> {
     let model = load_model(model_dir)?;
     let clip = start_clip(humanoid, clip)?;
-    let control = ControlConfig { paced: true, ..ControlConfig::new(nfe, guidance_scale, 0.0) };
     let model_name = model_dir.display().to_string();
     let session = flowmimic_serve::play::Session::start(
         model,
