@@ -6,8 +6,8 @@
 //! gradient's length ([`crate::Sum::guidance_grad`]), and a prediction can promise a motion
 //! that the executed actions do not deliver.
 
-use flowmimic_geom::wrap_angle;
-use flowmimic_sim::CONTROL_HZ;
+use flowmimic_geom::{heading, wrap_angle};
+use flowmimic_sim::{BodyKinematics, CONTROL_HZ};
 use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 
@@ -60,6 +60,12 @@ impl Recent {
             self.poses.pop_front();
         }
         self.poses.push_back(pose);
+    }
+
+    /// Records the pelvis pose of the current step's kinematics.
+    pub fn observe(&mut self, bodies: &BodyKinematics) {
+        let (p, r) = (bodies.pos[0], bodies.rot[0]);
+        self.push([p.x, p.y, heading(r)]);
     }
 
     /// Mean planar velocity over the window in the character frame of its middle (x forward,

@@ -7,7 +7,7 @@ use crate::history::History;
 use crate::rollout::{Rollout, RolloutInfo};
 use crate::task::Task;
 use crate::{ControlError, Layout};
-use flowmimic_geom::{CharFrame, heading};
+use flowmimic_geom::CharFrame;
 use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_sim::{CONTROL_HZ, Env, Humanoid, NUM_DOFS};
@@ -204,15 +204,10 @@ impl<'m> Controller<'m> {
         self.histories[e] = History::new(self.model.layout().spec);
         start_from_clip(&mut self.envs[e], &mut self.histories[e], clip, frame, n_hist)?;
         self.recent[e] = Recent::default();
-        self.remember_pose(e);
+        self.recent[e].observe(&self.envs[e].bodies());
         self.plans[e] = None;
         self.alive[e] = true;
         Ok(())
-    }
-
-    fn remember_pose(&mut self, e: usize) {
-        let b = self.envs[e].bodies();
-        self.recent[e].push([b.pos[0].x, b.pos[0].y, heading(b.rot[0])]);
     }
 
     /// Changes the sampler (NFE, scale, gradient, interval) from the next step on.
@@ -334,8 +329,9 @@ impl<'m> Controller<'m> {
         for (&e, standing) in alive.iter().zip(standing) {
             self.histories[e].act(actions[e].as_ref().expect("acted above"));
             if standing {
-                self.histories[e].observe(&self.envs[e].bodies());
-                self.remember_pose(e);
+                let bodies = self.envs[e].bodies();
+                self.histories[e].observe(&bodies);
+                self.recent[e].observe(&bodies);
             } else {
                 self.alive[e] = false;
                 fell.push(e);

@@ -136,9 +136,7 @@ impl Task {
         }
         Ok((!sum.terms.is_empty()).then_some(sum))
     }
-}
 
-impl Task {
     /// How far the humanoid's executed motion is from the joystick command at `time`, in the
     /// costs' units (m/s and rad/s, which [`Sum::guidance_grad`] weighs alike): the
     /// root-sum-square of the velocity and yaw-rate errors over the last half second
