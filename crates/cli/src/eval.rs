@@ -2,13 +2,12 @@
 //! points), run by `flowmimic_eval::experiments` with a progress bar.
 
 use crate::progress::Progress;
-use crate::run::start_clip;
+use crate::run::{GuidanceArgs, start_clip};
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
-use flowmimic_control::{Adaptive, StepReport};
+use flowmimic_control::StepReport;
 use flowmimic_eval::experiments::{Study, Trials};
 use flowmimic_eval::sweep::{EvalModel, Rows};
-use flowmimic_model::Gradient;
 use flowmimic_sim::Humanoid;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -35,53 +34,14 @@ pub struct Common {
     /// Start trials from this clip's frames (default: the generated straight walk).
     #[arg(long)]
     clip: Option<PathBuf>,
-    /// How guidance takes its gradient: through-network (a vector-Jacobian product through
-    /// the denoiser) or cost-only.
-    #[arg(long, value_parser = parse_gradient, default_value = "through-network")]
-    gradient: Gradient,
-    /// Solver steps that apply guidance, `start:end` (default: all but the last quarter).
-    #[arg(long, value_parser = parse_interval)]
-    guidance_interval: Option<(usize, usize)>,
-    /// Adaptive guidance: each environment's scale becomes w times its executed joystick error
-    /// over the last half second (m/s and rad/s) divided by this reference error, within w/4
-    /// and w; other tasks keep w (default: the fixed scale w throughout).
-    #[arg(long, value_parser = crate::eval::parse_adaptive)]
-    adaptive: Option<Adaptive>,
-}
-
-/// `start:end` with start < end: the solver steps guidance acts on.
-pub(crate) fn parse_interval(text: &str) -> Result<(usize, usize), String> {
-    let parsed = text.split_once(':').and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)));
-    parsed.filter(|(a, b)| a < b).ok_or_else(|| format!("'{text}': use start:end with start < end"))
-}
-
-/// A reference error for adaptive guidance (> 0).
-pub(crate) fn parse_adaptive(text: &str) -> Result<Adaptive, String> {
-    let value: f32 = text.parse().map_err(|_| format!("'{text}': not a number"))?;
-    Adaptive::new(value).map_err(|e| e.to_string())
-}
-
-/// `through-network` or `cost-only`.
-pub(crate) fn parse_gradient(text: &str) -> Result<Gradient, String> {
-    serde_json::from_str(&format!("\"{text}\"")).map_err(|_| format!("'{text}': use through-network or cost-only"))
+    #[command(flatten)]
+    guidance: GuidanceArgs,
 }
 
 impl Common {
     /// Settings for a programmatic run (the pipeline): models as LABEL=DIR.
     pub fn new(models: Vec<String>, out: PathBuf, quick: bool) -> Self {
-        let gradient = Gradient::default();
-        Self {
-            models,
-            out,
-            quick,
-            trials: None,
-            seed: 0,
-            execute: 1,
-            clip: None,
-            gradient,
-            guidance_interval: None,
-            adaptive: None,
-        }
+        Self { models, out, quick, trials: None, seed: 0, execute: 1, clip: None, guidance: GuidanceArgs::default() }
     }
 }
 
@@ -235,9 +195,9 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         trials: common.trials,
         seed: common.seed,
         execute: common.execute,
-        gradient: common.gradient,
-        guidance_steps: common.guidance_interval,
-        adaptive: common.adaptive,
+        gradient: common.guidance.gradient,
+        guidance_steps: common.guidance.guidance_interval,
+        adaptive: common.guidance.adaptive,
         progress: &with_progress,
     };
     lib(match &cmd {

@@ -18,7 +18,7 @@ mod viz;
 use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
 use config::Config;
-use flowmimic_control::{Adaptive, ControlConfig};
+use flowmimic_control::ControlConfig;
 use flowmimic_sim::{Humanoid, NUM_DOFS, STATE_DIM, bench, mjcf, skeleton};
 use std::path::PathBuf;
 
@@ -165,10 +165,8 @@ enum Command {
         /// Guidance scale at the start (the page changes it).
         #[arg(long, default_value_t = 30.0)]
         guidance_scale: f32,
-        /// Adaptive guidance: the joystick's scale becomes w times the executed error over the
-        /// last half second divided by this reference error (m/s and rad/s), within w/4 and w.
-        #[arg(long, value_parser = eval::parse_adaptive)]
-        adaptive: Option<Adaptive>,
+        #[command(flatten)]
+        guidance: run::GuidanceArgs,
         /// Start from this clip's frames (default: the generated straight walk).
         #[arg(long)]
         clip: Option<PathBuf>,
@@ -278,8 +276,8 @@ fn run(cli: Cli) -> Result<()> {
             viz::render(&Humanoid::new(config.sim)?, &file, out, env, (width, height), fps)?
         }
         Command::View { file, env, port } => viz::view(&Humanoid::new(config.sim)?, &file, env, port)?,
-        Command::Play { model, port, nfe, guidance_scale, adaptive, clip, record_dir } => {
-            let control = ControlConfig { paced: true, adaptive, ..ControlConfig::new(nfe, guidance_scale, 0.0) };
+        Command::Play { model, port, nfe, guidance_scale, guidance, clip, record_dir } => {
+            let control = guidance.apply(ControlConfig { paced: true, ..ControlConfig::new(nfe, guidance_scale, 0.0) });
             run::play(&Humanoid::new(config.sim)?, &model, port, control, clip.as_deref(), record_dir)?
         }
         Command::Eval(cmd) => eval::run(cmd, &Humanoid::new(config.sim)?)?,

@@ -51,18 +51,8 @@ pub struct RunArgs {
     /// task; 0 for none.
     #[arg(long, default_value_t = 10.0)]
     pub guidance_scale: f32,
-    /// How guidance takes its gradient: through-network (a vector-Jacobian product through the
-    /// denoiser, so a cost on states reaches the executed action) or cost-only.
-    #[arg(long, value_parser = crate::eval::parse_gradient, default_value = "through-network")]
-    pub gradient: Gradient,
-    /// Solver steps that apply guidance, `start:end` (default: all but the last quarter).
-    #[arg(long, value_parser = crate::eval::parse_interval)]
-    pub guidance_interval: Option<(usize, usize)>,
-    /// Adaptive guidance: each environment's scale becomes w times its executed joystick error
-    /// over the last half second (m/s and rad/s) divided by this reference error, within w/4
-    /// and w; other tasks keep w (default: the fixed scale w throughout).
-    #[arg(long, value_parser = crate::eval::parse_adaptive)]
-    pub adaptive: Option<Adaptive>,
+    #[command(flatten)]
+    pub guidance: GuidanceArgs,
     #[arg(long, default_value_t = 10.0)]
     pub seconds: f64,
     /// Actions of each sampled trajectory to execute before sampling again (1 = the paper's
@@ -83,6 +73,52 @@ pub struct RunArgs {
     /// Rollout file; default runs/run/<task>.rollout.safetensors.
     #[arg(short, long)]
     pub out: Option<PathBuf>,
+}
+
+/// How guidance acts, beside its scale: shared by `run`, `eval` and `play`.
+#[derive(Args, Clone, Copy, Default)]
+pub struct GuidanceArgs {
+    /// How guidance takes its gradient: through-network (a vector-Jacobian product through the
+    /// denoiser, so a cost on states reaches the executed action) or cost-only.
+    #[arg(long, value_parser = parse_gradient, default_value = "through-network")]
+    pub gradient: Gradient,
+    /// Solver steps that apply guidance, `start:end` (default: all but the last quarter).
+    #[arg(long, value_parser = parse_interval)]
+    pub guidance_interval: Option<(usize, usize)>,
+    /// Adaptive guidance: each environment's scale becomes w times its executed joystick error
+    /// over the last half second (m/s and rad/s) divided by this reference error, within w/4
+    /// and w; other tasks keep w (default: the fixed scale w throughout).
+    #[arg(long, value_parser = parse_adaptive)]
+    pub adaptive: Option<Adaptive>,
+}
+
+impl GuidanceArgs {
+    /// `control` with these settings.
+    pub fn apply(self, control: ControlConfig) -> ControlConfig {
+        ControlConfig {
+            gradient: self.gradient,
+            guidance_steps: self.guidance_interval,
+            adaptive: self.adaptive,
+            ..control
+        }
+    }
+}
+
+/// `start:end` with start < end: the solver steps guidance acts on.
+fn parse_interval(text: &str) -> Result<(usize, usize), String> {
+    let parsed = text.split_once(':').and_then(|(a, b)| Some((a.parse().ok()?, b.parse().ok()?)));
+    parsed.filter(|(a, b)| a < b).ok_or_else(|| format!("'{text}': use start:end with start < end"))
+}
+
+/// A reference error for adaptive guidance (> 0).
+fn parse_adaptive(text: &str) -> Result<Adaptive, String> {
+    let value: f32 = text.parse().map_err(|_| format!("'{text}': not a number"))?;
+    Adaptive::new(value).map_err(|e| e.to_string())
+}
+
+/// `through-network` or `cost-only`.
+fn parse_gradient(text: &str) -> Result<Gradient, String> {
+    serde_json::from_str(&format!("\"{text}\"")).map_err(|_| format!("'{text}': use through-network or cost-only"))
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -142,20 +178,9 @@ impl RunArgs {
         Ok(task)
     }
 
-    pub fn control(&self) -> Result<ControlConfig> {
-        Ok(ControlConfig {
-            nfe: self.nfe,
-            guidance_scale: self.guidance_scale,
-            gradient: self.gradient,
-            adaptive: self.adaptive,
-            guidance_steps: self.guidance_interval,
-            seconds: self.seconds,
-            execute: self.execute,
-            paced: self.paced,
-            seed: self.seed,
-            kick_every: 0.0,
-            kick_max: 0.0,
-        })
+    pub fn control(&self) -> ControlConfig {
+        let plain = ControlConfig::new(self.nfe, self.guidance_scale, self.seconds);
+        self.guidance.apply(ControlConfig { execute: self.execute, paced: self.paced, seed: self.seed, ..plain })
     }
 }
 
@@ -178,7 +203,7 @@ pub fn start_clip(humanoid: &Arc<Humanoid>, file: Option<&Path>) -> Result<Clip>
 pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     let model = load_model(&args.model)?;
     let task = args.task()?;
-    let control = args.control()?;
+    let control = args.control();
     let clip = start_clip(humanoid, args.clip.as_deref())?;
     let name = format!("{:?}", args.task).to_lowercase();
     let out = args.out.clone().unwrap_or_else(|| PathBuf::from("runs/run").join(format!("{name}.rollout.safetensors")));
