@@ -4,7 +4,7 @@
 use crate::run::{load_model, start_clip};
 use anyhow::Result;
 use flowmimic_control::{ControlConfig, Hand, JoystickSegment, Rollout, Task};
-use flowmimic_eval::protocols::{joystick_trial, yaw_rates};
+use flowmimic_eval::protocols::{SEGMENT_SETTLE, joystick_trial, yaw_rates};
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::skeleton::body;
 use flowmimic_sim::state::offset;
@@ -57,6 +57,12 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
         t.yaw_rate_rmse,
         fell(&r)
     );
+    for (seg, got) in r.info.tasks[0].joystick.iter().zip(&t.segments) {
+        println!(
+            "  commanded {:+.1} m/s forward at {:+.1} rad/s: achieved {:+.2} m/s forward, {:+.2} m/s left, {:+.2} rad/s (from {SEGMENT_SETTLE} s in)",
+            seg.vx, seg.yaw_rate, got[0], got[1], got[2]
+        );
+    }
 
     // 2. Reach with the right hand while walking: a target 2 m ahead, 0.3 m right, 1.2 m up.
     let walk = JoystickSegment { seconds: 5.0, vx: 0.8, vy: 0.0, yaw_rate: 0.0 };

@@ -2,7 +2,7 @@
 //! table, notes and the paper's numbers beside ours: what `flowmimic eval ...` runs, callable
 //! from a library ([`Study`] holds what every experiment shares).
 
-use crate::protocols::{self, Bench, Point};
+use crate::protocols::{self, Bench, Point, SEGMENT_SETTLE};
 use crate::sweep::{EvalModel, Experiment, Result, Rows, Summary, finish, sweep};
 use crate::{frechet_distance, gaussian};
 use flowmimic_control::{Adaptive, Hand, JoystickSegment, StepReport, Task};
@@ -156,15 +156,25 @@ impl Study<'_> {
             name: "joystick",
             settings: self.settings(""),
             title: "Joystick tracking against guidance (paper Fig. 3)",
-            columns: &["velocity_rmse", "yaw_rate_rmse", "fell"],
+            columns: &[
+                "velocity_rmse",
+                "yaw_rate_rmse",
+                "forward_vx",
+                "backward_vx",
+                "left_yaw_rate",
+                "right_yaw_rate",
+                "fell",
+            ],
             plot: "velocity_rmse",
             x_label: "guidance scale w",
             y_label: "velocity RMSE (m/s)",
-            header: "| model | H | w | velocity RMSE (m/s) | yaw-rate RMSE (rad/s) | falls |\n|---|---|---|---|---|---|",
+            header: "| model | H | w | velocity RMSE (m/s) | yaw-rate RMSE (rad/s) | forward / backward (m/s) | left / right (rad/s) | falls |\n|---|---|---|---|---|---|---|---|",
         };
         let notes = format!(
             "Forward 1.0 m/s, backward 0.5 m/s, turn left and right (0.8 m/s at 0.6 rad/s), 3 s each; RMSE between commanded \
              and achieved planar root velocity (character frame) over the steps before any fall; NFE {nfe}, {trials} trials. \
+             Per segment, the mean achieved forward velocity (forward, backward; commanded 1.0 and -0.5 m/s) and yaw rate \
+             (turns; commanded 0.6 and -0.6 rad/s) from {SEGMENT_SETTLE} s after the segment's start, over the trials that stand. \
              Paper: RMSE ≈ 0.55 at w = 40; 1.05 at H = 2 to 0.70 at H = 16."
         );
         self.guided_sweep(
@@ -172,17 +182,27 @@ impl Study<'_> {
             (scales, nfe, trials, 360),
             |bench, point, report| {
                 let r = protocols::joystick(bench, point, trials, report)?;
-                Ok(r.iter().map(|t| vec![t.velocity_rmse, t.yaw_rate_rmse, rate(t.fell)]).collect())
+                Ok(r.iter()
+                    .map(|t| {
+                        let [fwd, back, left, right] =
+                            [0, 1, 2, 3].map(|i| t.segments.get(i).copied().unwrap_or([f64::NAN; 3]));
+                        vec![t.velocity_rmse, t.yaw_rate_rmse, fwd[0], back[0], left[2], right[2], rate(t.fell)]
+                    })
+                    .collect())
             },
             |m, s| {
                 format!(
-                    "| {} | {} | {} | {:.3} ± {:.3} | {:.3} | {:.0}% |",
+                    "| {} | {} | {} | {:.3} ± {:.3} | {:.3} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0}% |",
                     m.label,
                     s.horizon,
                     s.scale,
                     s.mean["velocity_rmse"],
                     s.std["velocity_rmse"],
                     s.mean["yaw_rate_rmse"],
+                    s.mean["forward_vx"],
+                    s.mean["backward_vx"],
+                    s.mean["left_yaw_rate"],
+                    s.mean["right_yaw_rate"],
                     100.0 * s.mean["fell"]
                 )
             },

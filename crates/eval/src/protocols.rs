@@ -93,13 +93,20 @@ pub fn survival(
 }
 
 /// One joystick trial: RMSE of planar velocity (m/s) and yaw rate (rad/s) over the steps
-/// before any fall.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+/// before any fall, and what each segment of the schedule achieved.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct JoystickTrial {
     pub velocity_rmse: f64,
     pub yaw_rate_rmse: f64,
+    /// Per joystick segment: the mean achieved forward and left velocity (m/s, character
+    /// frame) and yaw rate (rad/s) from [`SEGMENT_SETTLE`] after the segment's start to its
+    /// end, before any fall (NaN when the humanoid fell before).
+    pub segments: Vec<[f64; 3]>,
     pub fell: bool,
 }
+
+/// Seconds of each joystick segment left out of its achieved velocity: the change of gait.
+pub const SEGMENT_SETTLE: f64 = 1.0;
 
 /// Joystick (paper Fig. 3): forward, backward, turn left, turn right, 3 s each.
 pub fn joystick(
@@ -127,16 +134,31 @@ pub fn yaw_rates(r: &Rollout, e: usize) -> Vec<f64> {
 pub fn joystick_trial(r: &Rollout, e: usize) -> JoystickTrial {
     let steps = r.survived[e];
     let (mut cmd, mut got, mut yaw_err) = (Vec::new(), Vec::new(), 0.0);
-    for (k, rate) in yaw_rates(r, e).into_iter().enumerate() {
+    let rates = yaw_rates(r, e);
+    for (k, &rate) in rates.iter().enumerate() {
         let c = r.command(e, k);
         let s = r.state(e, k + 1);
         cmd.push([f64::from(c[0]), f64::from(c[1])]);
         got.push([f64::from(s[offset::ROOT_VEL]), f64::from(s[offset::ROOT_VEL + 1])]);
         yaw_err += (rate - f64::from(c[2])).powi(2);
     }
+    let mut start = 0.0;
+    let segments = r.info.tasks[e]
+        .joystick
+        .iter()
+        .map(|seg| {
+            let from = ((start + SEGMENT_SETTLE) * CONTROL_HZ).round() as usize;
+            start += seg.seconds;
+            let to = ((start * CONTROL_HZ).round() as usize).min(steps);
+            let n = to.saturating_sub(from) as f64;
+            let mean = |v: &dyn Fn(usize) -> f64| (from..to).map(v).sum::<f64>() / n;
+            [mean(&|k| got[k][0]), mean(&|k| got[k][1]), mean(&|k| rates[k])]
+        })
+        .collect();
     JoystickTrial {
         velocity_rmse: velocity_rmse(&cmd, &got),
         yaw_rate_rmse: (yaw_err / steps.max(1) as f64).sqrt(),
+        segments,
         fell: r.fell(e),
     }
 }

@@ -62,6 +62,28 @@ fn a_known_trace_gives_known_errors() {
 }
 
 #[test]
+fn each_joystick_segment_reports_what_it_achieved_after_settling() {
+    // Two 2 s segments; 0.5 m/s forward then 0.3 m/s backward, turning 0.01 rad per step.
+    let seg = |vx| flowmimic_control::JoystickSegment { seconds: 2.0, vx, vy: 0.0, yaw_rate: 0.0 };
+    let with = |fall| {
+        let mut r = rollout(120, 0.0, 0.01, fall);
+        r.info.tasks[0].joystick = vec![seg(1.0), seg(-0.5)];
+        for k in 61..=120 {
+            r.state[k * STATE_DIM + offset::ROOT_VEL] = -0.3;
+        }
+        r
+    };
+    let t = joystick_trial(&with(120), 0);
+    assert_eq!(t.segments.len(), 2);
+    for (got, want) in t.segments.iter().zip([[0.5, 0.0, 0.3], [-0.3, 0.0, 0.3]]) {
+        assert!(got.iter().zip(want).all(|(g, w)| (g - w).abs() < 1e-4), "{got:?} against {want:?}");
+    }
+    // A fall in the second segment's first second leaves nothing of it to report.
+    let t = joystick_trial(&with(80), 0);
+    assert!((t.segments[0][0] - 0.5).abs() < 1e-9 && t.segments[1].iter().all(|v| v.is_nan()), "{t:?}");
+}
+
+#[test]
 fn rollouts_round_trip_and_bad_files_are_named() {
     let dir = std::env::temp_dir().join(format!("flowmimic-rollout-{}", std::process::id()));
     let path = dir.join("r.rollout.safetensors");
