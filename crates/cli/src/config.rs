@@ -110,4 +110,19 @@ mod tests {
         assert!(Config::load("huge", None).is_err());
         std::fs::remove_dir_all(&dir).unwrap();
     }
+
+    /// The README's commands pass `configs/*.toml` over the cpu preset: each must load.
+    #[test]
+    fn every_shipped_config_loads_over_the_cpu_preset() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs");
+        let mut loaded = 0;
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                Config::load("cpu", Some(&path)).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+                loaded += 1;
+            }
+        }
+        assert!(loaded >= 4, "found {loaded} configs in {}", dir.display());
+    }
 }
