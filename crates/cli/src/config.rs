@@ -1,6 +1,7 @@
-//! Run configuration: a preset (`tiny`, `cpu`, `paper`) with an optional TOML file on top.
+//! Run configuration: a preset (`tiny`, `cpu`, `paper`) with optional TOML files on top.
 //!
-//! A user file only needs the keys it changes; everything else comes from the preset. Unknown
+//! A user file only needs the keys it changes; everything else comes from the preset (or the
+//! files before it). Unknown
 //! keys are errors, so a typo never silently falls back to a default.
 
 use anyhow::{Context, Result, bail};
@@ -46,18 +47,29 @@ fn merge(base: &mut toml::Table, top: toml::Table) {
 }
 
 impl Config {
-    /// The preset `name`, overlaid with the TOML file `file` if given.
-    pub fn load(preset: &str, file: Option<&Path>) -> Result<Self> {
+    /// The preset `name`, overlaid with the TOML `files` in order (a later file's keys win).
+    pub fn load(preset: &str, files: &[&Path]) -> Result<Self> {
         let Some((_, text)) = PRESETS.iter().find(|(n, _)| *n == preset) else {
             bail!("unknown preset '{preset}'; choose one of tiny, cpu, paper");
         };
-        let mut table: toml::Table = text.parse().with_context(|| format!("built-in preset {preset}"))?;
-        if let Some(path) = file {
+        let base: toml::Table = text.parse().with_context(|| format!("built-in preset {preset}"))?;
+        let mut table = base.clone();
+        for path in files {
             let user = flowmimic_io::read_to_string(path)?;
             let user: toml::Table = user.parse().with_context(|| format!("{}: not valid TOML", path.display()))?;
+            // Each file alone over the preset first, so that an unknown key names its file.
+            let mut alone = base.clone();
+            merge(&mut alone, user.clone());
+            toml::Value::Table(alone)
+                .try_into::<Config>()
+                .with_context(|| format!("{}: invalid settings", path.display()))?;
             merge(&mut table, user);
         }
-        let what = file.map_or_else(|| format!("preset {preset}"), |p| p.display().to_string());
+        let what = if files.is_empty() {
+            format!("preset {preset}")
+        } else {
+            files.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" + ")
+        };
         let config: Config =
             toml::Value::Table(table).try_into().with_context(|| format!("{what}: invalid settings"))?;
         config.validate().map_err(|e| anyhow::anyhow!("{what}: {e}"))?;
@@ -83,13 +95,13 @@ mod tests {
     #[test]
     fn presets_parse_and_files_override_them() {
         for (name, _) in PRESETS {
-            Config::load(name, None).unwrap();
+            Config::load(name, &[]).unwrap();
         }
         let dir = std::env::temp_dir().join(format!("flowmimic-cfg-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("mine.toml");
         std::fs::write(&path, "[sim]\nsubsteps = 6\n").unwrap();
-        assert_eq!(Config::load("cpu", Some(&path)).unwrap().sim.substeps, 6);
+        assert_eq!(Config::load("cpu", &[&path]).unwrap().sim.substeps, 6);
         // Values are checked, not only keys.
         for (bad, key) in [
             ("[model]\nheads = 0\n", "model.heads"),
@@ -101,13 +113,22 @@ mod tests {
             ("[track]\nclip = -0.2\n", "positive"),
         ] {
             std::fs::write(&path, bad).unwrap();
-            let err = format!("{:#}", Config::load("cpu", Some(&path)).unwrap_err());
+            let err = format!("{:#}", Config::load("cpu", &[&path]).unwrap_err());
             assert!(err.contains("mine.toml") && err.contains(key), "{bad}: {err}");
         }
         std::fs::write(&path, "[sim]\nsubstep = 6\n").unwrap();
-        let err = format!("{:#}", Config::load("cpu", Some(&path)).unwrap_err());
+        let err = format!("{:#}", Config::load("cpu", &[&path]).unwrap_err());
         assert!(err.contains("mine.toml") && err.contains("substep"), "{err}");
-        assert!(Config::load("huge", None).is_err());
+        assert!(Config::load("huge", &[]).is_err());
+        // Files layer in order; a later file's keys win, and an error names the file.
+        let top = dir.join("top.toml");
+        std::fs::write(&path, "[sim]\nsubsteps = 6\n[track]\nenvs = 7\n").unwrap();
+        std::fs::write(&top, "[track]\nenvs = 9\n").unwrap();
+        let both = Config::load("cpu", &[&path, &top]).unwrap();
+        assert_eq!((both.sim.substeps, both.track.envs), (6, 9));
+        std::fs::write(&top, "[track]\nenv = 9\n").unwrap();
+        let err = format!("{:#}", Config::load("cpu", &[&path, &top]).unwrap_err());
+        assert!(err.contains("top.toml") && !err.contains("mine.toml") && err.contains("env"), "{err}");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
@@ -119,7 +140,7 @@ mod tests {
         for entry in std::fs::read_dir(&dir).unwrap() {
             let path = entry.unwrap().path();
             if path.extension().is_some_and(|e| e == "toml") {
-                Config::load("cpu", Some(&path)).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+                Config::load("cpu", &[&path]).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
                 loaded += 1;
             }
         }

@@ -20,7 +20,7 @@ use clap::{Args, Parser, Subcommand};
 use config::Config;
 use flowmimic_control::ControlConfig;
 use flowmimic_sim::{Humanoid, NUM_DOFS, STATE_DIM, bench, mjcf, skeleton};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// mimalloc instead of the system allocator: glibc hands the model's per-step buffers (tapes of
 /// hundreds of KB to MB) back to the kernel on every free and page-faults them in again on the
@@ -43,9 +43,10 @@ struct Settings {
     /// Built-in settings to start from: tiny (tests), cpu (a laptop), paper (a GPU).
     #[arg(long, global = true, default_value = "cpu")]
     preset: String,
-    /// A TOML file whose keys override the preset (`flowmimic config` prints every key).
+    /// A TOML file whose keys override the preset (`flowmimic config` prints every key);
+    /// repeat it to layer files in order, a later file's keys winning.
     #[arg(long, global = true)]
-    config: Option<PathBuf>,
+    config: Vec<PathBuf>,
 }
 
 #[derive(Subcommand)]
@@ -264,7 +265,8 @@ fn main() {
 }
 
 fn run(cli: Cli) -> Result<()> {
-    let config = Config::load(&cli.settings.preset, cli.settings.config.as_deref())?;
+    let files: Vec<&Path> = cli.settings.config.iter().map(PathBuf::as_path).collect();
+    let config = Config::load(&cli.settings.preset, &files)?;
     match cli.command {
         Command::Collect { runs, out } => {
             data::run_collect(&Humanoid::new(config.sim)?, runs, out, config.collect.clone())?
@@ -287,7 +289,7 @@ fn run(cli: Cli) -> Result<()> {
             model::train(&dataset, &objective, &out, steps, resume, config.model, config.train.clone())?
         }
         Command::Bench(BenchCommand::Model { repeats }) => {
-            let paper = Config::load("paper", None)?.model;
+            let paper = Config::load("paper", &[])?.model;
             model::bench(&[(cli.settings.preset.as_str(), config.model), ("paper", paper)], repeats)?
         }
         Command::Export { path, out, check, rollout, step } => {

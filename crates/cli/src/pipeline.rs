@@ -88,8 +88,9 @@ pub fn run(config: &Config, preset: &str, out: &Path, clip_files: &[PathBuf]) ->
         let dir = out.join("experts").join(&clip.name);
         let k =
             stage(&format!("expert '{}'", clip.name), &dir, key(&[clips_key.clone(), json(&config.track)]), || {
-                let resume = dir.join(crate::track::RUN_POLICY).exists();
-                crate::track::train(&humanoid, vec![clip.clone()], &dir, &config.track, resume)
+                use crate::track::Start;
+                let start = if dir.join(crate::track::RUN_POLICY).exists() { Start::Resume } else { Start::Fresh };
+                crate::track::train(&humanoid, vec![clip.clone()], &dir, &config.track, start)
             })?;
         experts.push(dir);
         expert_keys.push(k);

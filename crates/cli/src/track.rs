@@ -28,8 +28,13 @@ pub enum TrackCommand {
         #[arg(long)]
         iterations: Option<usize>,
         /// Continue from <out>/policy.safetensors with its optimiser state and counters.
-        #[arg(long)]
+        #[arg(long, conflicts_with = "init")]
         resume: bool,
+        /// Start from another run's policy (its directory or policy file): weights, action
+        /// noise and observation statistics, with a fresh optimiser and counters. Fine-tunes,
+        /// for example, the corpus expert on one clip.
+        #[arg(long)]
+        init: Option<PathBuf>,
     },
     /// Redraw a run's learning curves (reward, episode length, error) from its log.csv.
     Plot {
@@ -97,13 +102,18 @@ pub(crate) fn load_clips(humanoid: &Arc<Humanoid>, files: &[PathBuf]) -> Result<
 
 pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) -> Result<()> {
     match cmd {
-        TrackCommand::Train { clip, out, iterations, resume } => {
+        TrackCommand::Train { clip, out, iterations, resume, init } => {
             let clips = load_clips(humanoid, &clip)?;
             let out = out.unwrap_or_else(|| PathBuf::from("runs/track").join(&clips[0].name));
             if let Some(n) = iterations {
                 cfg.iterations = n;
             }
-            train(humanoid, clips, &out, &cfg, resume)?;
+            let start = match (resume, init) {
+                (true, _) => Start::Resume,
+                (false, Some(run)) => Start::From(if run.is_dir() { run.join(RUN_POLICY) } else { run }),
+                (false, None) => Start::Fresh,
+            };
+            train(humanoid, clips, &out, &cfg, start)?;
         }
         TrackCommand::Plot { run } => {
             let text = flowmimic_io::read_to_string(&run.join("log.csv"))?;
@@ -143,19 +153,35 @@ fn print_clip_summary(names: &[String], recent: &[ClipLog]) {
     eprintln!("\rfailures per minute of motion, body error: {}", line.join(", "));
 }
 
-/// Trains (or with `resume`, continues) an expert on `clips` into the run directory `out`.
-pub fn train(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, out: &Path, cfg: &TrackConfig, resume: bool) -> Result<()> {
+/// How a training run begins.
+pub enum Start {
+    /// New weights.
+    Fresh,
+    /// Continue the run in the output directory.
+    Resume,
+    /// A new run from the policy in this checkpoint file.
+    From(PathBuf),
+}
+
+/// Trains (or continues) an expert on `clips` into the run directory `out`.
+pub fn train(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, out: &Path, cfg: &TrackConfig, start: Start) -> Result<()> {
     let policy_path = out.join(RUN_POLICY);
     let log_path = out.join("log.csv");
-    let mut trainer = if resume {
-        let t = Trainer::resume(humanoid, clips, cfg.clone(), &policy_path)?;
-        eprintln!("resumed {} at iteration {} ({} env steps)", policy_path.display(), t.iteration, t.env_steps);
-        t
-    } else {
-        if policy_path.exists() {
-            anyhow::bail!("{} exists: pass --resume to continue it, or choose another --out", policy_path.display());
+    let resume = matches!(start, Start::Resume);
+    if !resume && policy_path.exists() {
+        anyhow::bail!("{} exists: pass --resume to continue it, or choose another --out", policy_path.display());
+    }
+    let mut trainer = match start {
+        Start::Resume => {
+            let t = Trainer::resume(humanoid, clips, cfg.clone(), &policy_path)?;
+            eprintln!("resumed {} at iteration {} ({} env steps)", policy_path.display(), t.iteration, t.env_steps);
+            t
         }
-        Trainer::new(humanoid, clips, cfg.clone())?
+        Start::From(init) => {
+            eprintln!("starting from the policy of {}", init.display());
+            Trainer::warm_start(humanoid, clips, cfg.clone(), &init)?
+        }
+        Start::Fresh => Trainer::new(humanoid, clips, cfg.clone())?,
     };
     let mut log = CsvLog::open(log_path.clone(), IterationLog::CSV_HEADER, resume.then_some(trainer.iteration));
     let mut clip_log = CsvLog::open(out.join("clips.csv"), CLIPS_CSV_HEADER, resume.then_some(trainer.iteration));

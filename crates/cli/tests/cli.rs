@@ -25,6 +25,14 @@ fn stages_connect_through_their_files() {
         &["track", "train", "--clip", "clips/w.clip.safetensors", "-o", "run", "--resume", "--iterations", "3"],
     );
     assert!(resumed.contains("resumed") && resumed.contains("[    3/3]"), "{resumed}");
+    let warm = ok(
+        &dir,
+        &["track", "train", "--clip", "clips/w.clip.safetensors", "-o", "warm", "--init", "run", "--iterations", "1"],
+    );
+    assert!(
+        warm.contains("starting from the policy of run/policy.safetensors") && warm.contains("[    1/1]"),
+        "{warm}"
+    );
     let eval = ok(&dir, &["track", "eval", "run", "--episodes", "2"]);
     assert!(eval.contains("\"clip\":\"w\"") && eval.contains("\"clip_steps\":45"), "{eval}");
     assert!(eval.contains("\"root_path_error\":") && eval.contains("\"end_heading_error\":"), "{eval}");

@@ -560,6 +560,41 @@ impl Trainer {
         self.references.iter().map(|r| r.len().to_string()).collect::<Vec<_>>().join(",")
     }
 
+    /// Starts a new run on `clips` from the policy of another run's checkpoint: its weights,
+    /// action noise, observation statistics and learning rate, with fresh Adam moments and
+    /// counters (to fine-tune a corpus expert on one clip, or under other settings). The
+    /// learning rate is kept because the configured initial one would undo a trained policy
+    /// in the first update, before the KL rule lowers it.
+    pub fn warm_start(
+        humanoid: &Arc<Humanoid>,
+        clips: Vec<Clip>,
+        cfg: TrackConfig,
+        path: &Path,
+    ) -> Result<Self, TrackError> {
+        let ck = Checkpoint::read(path)?;
+        let mut trainer = Self::from_policy_of(humanoid, clips, cfg, &ck)?;
+        trainer.opt.lr = ck.number("learning_rate")? as f32;
+        Ok(trainer)
+    }
+
+    fn from_policy_of(
+        humanoid: &Arc<Humanoid>,
+        clips: Vec<Clip>,
+        cfg: TrackConfig,
+        ck: &Checkpoint,
+    ) -> Result<Self, TrackError> {
+        let saved = ck.config()?;
+        if saved.hidden != cfg.hidden {
+            return Err(ck.bad(format!(
+                "checkpoint has hidden layers {:?}; the config asks for {:?}",
+                saved.hidden, cfg.hidden
+            )));
+        }
+        let mut trainer = Self::new(humanoid, clips, cfg)?;
+        ck.load_policy(&mut trainer.policy)?;
+        Ok(trainer)
+    }
+
     /// Continues a run from a checkpoint written by [`Trainer::save`] for the same clips and
     /// network shape; anything else is refused with the reason.
     pub fn resume(
@@ -579,15 +614,11 @@ impl Trainer {
                 ck.meta("clip_frames")?
             )));
         }
-        let saved: TrackConfig = serde_json::from_str(&ck.meta("config")?).map_err(|e| bad(format!("config: {e}")))?;
-        if saved.hidden != cfg.hidden || saved.envs != cfg.envs {
-            return Err(bad(format!(
-                "checkpoint has hidden {:?} and {} envs; the config asks for {:?} and {}",
-                saved.hidden, saved.envs, cfg.hidden, cfg.envs
-            )));
+        let saved = ck.config()?;
+        if saved.envs != cfg.envs {
+            return Err(bad(format!("checkpoint has {} envs; the config asks for {}", saved.envs, cfg.envs)));
         }
-        let mut trainer = Self::new(humanoid, clips, cfg)?;
-        ck.load_policy(&mut trainer.policy)?;
+        let mut trainer = Self::from_policy_of(humanoid, clips, cfg, &ck)?;
         trainer.opt.adam.m = ck.f32s("adam_m", trainer.policy.num_params())?;
         trainer.opt.adam.v = ck.f32s("adam_v", trainer.policy.num_params())?;
         trainer.opt.adam.t = ck.number("adam_t")? as u64;

@@ -123,7 +123,17 @@ fn one_policy_trains_on_several_clips() {
     trainer.save(&path).unwrap();
     let resumed = Trainer::resume(&h, vec![a.clone(), b.clone()], tiny(), &path).unwrap();
     assert_eq!(resumed.policy.params(), trainer.policy.params());
-    let err = Trainer::resume(&h, vec![b, a], tiny(), &path).err().unwrap().to_string();
+    let err = Trainer::resume(&h, vec![b.clone(), a], tiny(), &path).err().unwrap().to_string();
     assert!(err.contains("walk,back"), "clips in another order are another run: {err}");
+    // A warm start takes the policy onto other clips and other environments, counters at zero.
+    let more_envs = TrackConfig { envs: tiny().envs + 2, ..tiny() };
+    let mut warm = Trainer::warm_start(&h, vec![b.clone()], more_envs, &path).unwrap();
+    assert_eq!((warm.iteration, warm.env_steps), (0, 0));
+    assert_eq!(warm.policy.params(), trainer.policy.params());
+    assert_eq!(warm.policy.normalizer.mean, trainer.policy.normalizer.mean);
+    assert!(warm.iterate().unwrap().mean_reward.is_finite());
+    let wider = TrackConfig { hidden: vec![64, 64], ..tiny() };
+    let err = Trainer::warm_start(&h, vec![b], wider, &path).err().unwrap().to_string();
+    assert!(err.contains("hidden") && err.contains("policy.safetensors"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
