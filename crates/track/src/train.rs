@@ -571,13 +571,11 @@ impl Trainer {
         cfg: TrackConfig,
         path: &Path,
     ) -> Result<Self, TrackError> {
-        let ck = Checkpoint::read(path)?;
-        let mut trainer = Self::from_policy_of(humanoid, clips, cfg, &ck)?;
-        trainer.opt.lr = ck.number("learning_rate")? as f32;
-        Ok(trainer)
+        Self::from_checkpoint(humanoid, clips, cfg, &Checkpoint::read(path)?)
     }
 
-    fn from_policy_of(
+    /// A new trainer with the checkpoint's policy and learning rate.
+    fn from_checkpoint(
         humanoid: &Arc<Humanoid>,
         clips: Vec<Clip>,
         cfg: TrackConfig,
@@ -592,6 +590,7 @@ impl Trainer {
         }
         let mut trainer = Self::new(humanoid, clips, cfg)?;
         ck.load_policy(&mut trainer.policy)?;
+        trainer.opt.lr = ck.number("learning_rate")? as f32;
         Ok(trainer)
     }
 
@@ -618,11 +617,10 @@ impl Trainer {
         if saved.envs != cfg.envs {
             return Err(bad(format!("checkpoint has {} envs; the config asks for {}", saved.envs, cfg.envs)));
         }
-        let mut trainer = Self::from_policy_of(humanoid, clips, cfg, &ck)?;
+        let mut trainer = Self::from_checkpoint(humanoid, clips, cfg, &ck)?;
         trainer.opt.adam.m = ck.f32s("adam_m", trainer.policy.num_params())?;
         trainer.opt.adam.v = ck.f32s("adam_v", trainer.policy.num_params())?;
         trainer.opt.adam.t = ck.number("adam_t")? as u64;
-        trainer.opt.lr = ck.number("learning_rate")? as f32;
         let total = trainer.samplers.iter().map(|s| s.failures.len()).sum();
         let mut failures = ck.f64s("start_failures", total)?.into_iter();
         for sampler in &mut trainer.samplers {
