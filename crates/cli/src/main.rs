@@ -51,11 +51,11 @@ struct Settings {
 
 #[derive(Subcommand)]
 enum Command {
-    /// The shipped guidance model walks on a joystick schedule, then reaches with its right
+    /// The shipped FM guidance model walks on a joystick schedule, then reaches with its right
     /// hand while walking: rollouts, plots and metrics in seconds.
     Demo {
         /// Model directory.
-        #[arg(long, default_value = "pretrained/models/guide")]
+        #[arg(long, default_value = "pretrained/models/fm")]
         model: PathBuf,
         #[arg(short, long, default_value = "runs/demo")]
         out: PathBuf,
@@ -154,8 +154,8 @@ enum Command {
     /// serves a page on 127.0.0.1 (WASD or arrows walk, Q/E turn, a gamepad's sticks do the same;
     /// click the ground for a waypoint; place a hand target; push, reset, record). Ctrl-C stops it.
     Play {
-        /// Model directory (`flowmimic train` writes it; default: the shipped guidance model).
-        #[arg(long, default_value = "pretrained/models/guide")]
+        /// Model directory (`flowmimic train` writes it; default: the shipped FM guidance model).
+        #[arg(long, default_value = "pretrained/models/fm")]
         model: PathBuf,
         /// Port on 127.0.0.1 (0: any free one).
         #[arg(long, default_value_t = 8000)]

@@ -15,7 +15,7 @@ use tungstenite::{Message, WebSocket, stream::MaybeTlsStream};
 
 type Socket = WebSocket<MaybeTlsStream<TcpStream>>;
 
-const MODEL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models/fm");
+const MODEL: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models/fm-walk");
 
 /// A child process killed when the test ends, passed or not.
 struct Killed(Child);
