@@ -1,8 +1,7 @@
 //! Run configuration: a preset (`tiny`, `cpu`, `paper`) with optional TOML files on top.
 //!
 //! A user file only needs the keys it changes; everything else comes from the preset (or the
-//! files before it). Unknown
-//! keys are errors, so a typo never silently falls back to a default.
+//! files before it). Unknown keys are errors, so a typo never silently falls back to a default.
 
 use anyhow::{Context, Result, bail};
 use flowmimic_data::CollectConfig;
@@ -52,26 +51,23 @@ impl Config {
         let Some((_, text)) = PRESETS.iter().find(|(n, _)| *n == preset) else {
             bail!("unknown preset '{preset}'; choose one of tiny, cpu, paper");
         };
-        let base: toml::Table = text.parse().with_context(|| format!("built-in preset {preset}"))?;
-        let mut table = base.clone();
+        let mut table: toml::Table = text.parse().with_context(|| format!("built-in preset {preset}"))?;
+        let read = |table: &toml::Table, what: &str| -> Result<Config> {
+            toml::Value::Table(table.clone()).try_into().with_context(|| format!("{what}: invalid settings"))
+        };
+        let mut config = read(&table, &format!("preset {preset}"))?;
         for path in files {
             let user = flowmimic_io::read_to_string(path)?;
             let user: toml::Table = user.parse().with_context(|| format!("{}: not valid TOML", path.display()))?;
-            // Each file alone over the preset first, so that an unknown key names its file.
-            let mut alone = base.clone();
-            merge(&mut alone, user.clone());
-            toml::Value::Table(alone)
-                .try_into::<Config>()
-                .with_context(|| format!("{}: invalid settings", path.display()))?;
             merge(&mut table, user);
+            // Read after each file, so that an unknown key or a wrong type names the file that brings it.
+            config = read(&table, &path.display().to_string())?;
         }
         let what = if files.is_empty() {
             format!("preset {preset}")
         } else {
             files.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" + ")
         };
-        let config: Config =
-            toml::Value::Table(table).try_into().with_context(|| format!("{what}: invalid settings"))?;
         config.validate().map_err(|e| anyhow::anyhow!("{what}: {e}"))?;
         Ok(config)
     }

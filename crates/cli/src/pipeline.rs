@@ -7,6 +7,7 @@
 
 use crate::config::Config;
 use crate::eval::{self, Common, EvalCommand};
+use crate::track::Start;
 use anyhow::{Context, Result};
 use flowmimic_motion::Clip;
 use flowmimic_sim::Humanoid;
@@ -88,7 +89,6 @@ pub fn run(config: &Config, preset: &str, out: &Path, clip_files: &[PathBuf]) ->
         let dir = out.join("experts").join(&clip.name);
         let k =
             stage(&format!("expert '{}'", clip.name), &dir, key(&[clips_key.clone(), json(&config.track)]), || {
-                use crate::track::Start;
                 let start = if dir.join(crate::track::RUN_POLICY).exists() { Start::Resume } else { Start::Fresh };
                 crate::track::train(&humanoid, vec![clip.clone()], &dir, &config.track, start)
             })?;

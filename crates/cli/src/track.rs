@@ -31,8 +31,8 @@ pub enum TrackCommand {
         #[arg(long, conflicts_with = "init")]
         resume: bool,
         /// Start from another run's policy (its directory or policy file): weights, action
-        /// noise and observation statistics, with a fresh optimiser and counters. Fine-tunes,
-        /// for example, the corpus expert on one clip.
+        /// noise, observation statistics and learning rate, with fresh Adam moments and
+        /// counters. Fine-tunes, for example, the corpus expert on one clip.
         #[arg(long)]
         init: Option<PathBuf>,
     },

@@ -111,8 +111,8 @@ fn the_shipped_guidance_model_walks_to_a_waypoint_off_to_its_left() {
 }
 
 /// The shipped one-step model in one network call per control step, against the shipped
-/// velocity-predicting Flow Matching model of the same data (`fm-walk`) in one Euler step, both under the survival protocol's kicks (0-0.5 m/s every
-/// second), 8 trials of at most 30 s (measured here: every trial survives, 900 steps, against a
+/// velocity-predicting Flow Matching model of the same data (`fm-walk`) in one Euler step, both
+/// under the survival protocol's kicks (0-0.5 m/s every second), 8 trials of at most 30 s (measured here: every trial survives, 900 steps, against a
 /// mean of 134; the README's 20-trial numbers: 1000 and 109 of 1000). The bounds leave room for
 /// another machine's floating point to take the kicked walks elsewhere.
 #[test]
