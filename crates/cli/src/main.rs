@@ -300,45 +300,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Motion(cmd) => motion::run(cmd, &Humanoid::new(config.sim)?)?,
         Command::Track(cmd) => track::run(cmd, &Humanoid::new(config.sim)?, config.track.clone())?,
         Command::Bench(BenchCommand::Track { iterations }) => {
-            let humanoid = Humanoid::new(config.sim)?;
-            let clip = flowmimic_motion::generate(&humanoid, "walk", &Default::default())?.0;
-            let cfg = &config.track;
-            println!(
-                "PPO iteration: {} envs x {} steps, hidden {:?}, {} epochs x {} minibatches",
-                cfg.envs, cfg.horizon, cfg.hidden, cfg.epochs, cfg.minibatches
-            );
-            let peak = flowmimic_nn::sgemm_gflops(512, 7);
-            let params = flowmimic_track::ppo::Policy::new(
-                flowmimic_track::task::OBS_DIM,
-                flowmimic_sim::NUM_DOFS,
-                cfg,
-                &mut <rand::rngs::StdRng as rand::SeedableRng>::seed_from_u64(0),
-            )
-            .num_params() as f64;
-            // An MLP forward pass costs 2 FLOPs per weight and sample; backward twice that.
-            let update_flops = 6.0 * params * (cfg.envs * cfg.horizon * cfg.epochs) as f64;
-            println!(
-                "measured SGEMM peak (512^3, all threads): {peak:.1} GFLOP/s; one update: {:.1} GFLOP",
-                update_flops / 1e9
-            );
-            println!(
-                "{:>7} {:>12} {:>11} {:>11} {:>11} {:>12}",
-                "threads", "env steps/s", "physics s", "network s", "update s", "update/peak"
-            );
-            let all = std::thread::available_parallelism().map_or(1, |n| n.get());
-            for threads in if all > 1 { vec![1, all] } else { vec![1] } {
-                let log =
-                    flowmimic_track::train::bench(&humanoid, vec![clip.clone()], cfg.clone(), iterations, threads)?;
-                let fraction = update_flops / f64::from(log.update_seconds) / 1e9 / peak;
-                println!(
-                    "{threads:>7} {:>12.0} {:>11.3} {:>11.3} {:>11.3} {:>11.0}%",
-                    log.steps_per_second,
-                    log.physics_seconds,
-                    log.network_seconds,
-                    log.update_seconds,
-                    100.0 * fraction
-                );
-            }
+            track::bench(&Humanoid::new(config.sim)?, &config.track, iterations)?
         }
         Command::Bench(BenchCommand::Sim { envs, repeats }) => {
             let humanoid = Humanoid::new(config.sim)?;

@@ -243,3 +243,46 @@ pub fn train(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, out: &Path, cfg: &Track
     eprintln!("wrote {} and {}", policy_path.display(), log_path.display());
     Ok(())
 }
+
+/// `flowmimic bench track`: PPO's throughput on 1 and all cores, split into physics, network
+/// and update, beside `VecEnv::step` of as many environments on as many threads measured just
+/// before it (the physics alone: the rate PPO would reach with a free update).
+pub fn bench(humanoid: &Arc<Humanoid>, cfg: &TrackConfig, iterations: usize) -> Result<()> {
+    let clip = flowmimic_motion::generate(humanoid, "walk", &Default::default())?.0;
+    println!(
+        "PPO iteration: {} envs x {} steps, hidden {:?}, {} epochs x {} minibatches",
+        cfg.envs, cfg.horizon, cfg.hidden, cfg.epochs, cfg.minibatches
+    );
+    let peak = flowmimic_nn::sgemm_gflops(512, 20);
+    let mut rng = <rand::rngs::StdRng as rand::SeedableRng>::seed_from_u64(0);
+    let params =
+        flowmimic_track::ppo::Policy::new(flowmimic_track::task::OBS_DIM, flowmimic_sim::NUM_DOFS, cfg, &mut rng)
+            .num_params() as f64;
+    // An MLP forward pass costs 2 FLOPs per weight and sample; backward twice that.
+    let update_flops = 6.0 * params * (cfg.envs * cfg.horizon * cfg.epochs) as f64;
+    println!(
+        "SGEMM peak (best of 20 products of 512^3, all threads): {peak:.1} GFLOP/s; one update: {:.1} GFLOP",
+        update_flops / 1e9
+    );
+    println!(
+        "{:>7} {:>12} {:>11} {:>11} {:>11} {:>12} {:>13} {:>10}",
+        "threads", "env steps/s", "physics s", "network s", "update s", "update/peak", "VecEnv /s", "PPO/VecEnv"
+    );
+    let all = std::thread::available_parallelism().map_or(1, |n| n.get());
+    for threads in if all > 1 { vec![1, all] } else { vec![1] } {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
+        let vec_env = pool.install(|| flowmimic_sim::bench::vec_env(humanoid, cfg.envs, 5)).per_second;
+        let log = flowmimic_track::train::bench(humanoid, vec![clip.clone()], cfg.clone(), iterations, threads)?;
+        let fraction = update_flops / f64::from(log.update_seconds) / 1e9 / peak;
+        let steps = f64::from(log.steps_per_second);
+        println!(
+            "{threads:>7} {steps:>12.0} {:>11.3} {:>11.3} {:>11.3} {:>11.0}% {vec_env:>13.0} {:>9.0}%",
+            log.physics_seconds,
+            log.network_seconds,
+            log.update_seconds,
+            100.0 * fraction,
+            100.0 * steps / vec_env
+        );
+    }
+    Ok(())
+}

@@ -69,17 +69,19 @@ mod avx2 {
             let tile = if rows - r >= ROWS { ROWS } else { 1 };
             let mut o = 0;
             while o < outputs {
-                let pair = outputs - o >= 2;
-                // SAFETY: rows r .. r + tile of x and y and outputs o .. o + 1 or 2 of w exist.
+                let step = (outputs - o).min(3);
+                // SAFETY: rows r .. r + tile of x and y and outputs o .. o + step of w exist.
                 unsafe {
-                    match (tile, pair) {
-                        (ROWS, true) => dot_tile::<ROWS, 2>(x, r, w, o, (b, inputs), y),
-                        (ROWS, false) => dot_tile::<ROWS, 1>(x, r, w, o, (b, inputs), y),
-                        (_, true) => dot_tile::<1, 2>(x, r, w, o, (b, inputs), y),
-                        (_, false) => dot_tile::<1, 1>(x, r, w, o, (b, inputs), y),
+                    match (tile, step) {
+                        (ROWS, 3) => dot_tile::<ROWS, 3>(x, r, w, o, (b, inputs), y),
+                        (ROWS, 2) => dot_tile::<ROWS, 2>(x, r, w, o, (b, inputs), y),
+                        (ROWS, _) => dot_tile::<ROWS, 1>(x, r, w, o, (b, inputs), y),
+                        (_, 3) => dot_tile::<1, 3>(x, r, w, o, (b, inputs), y),
+                        (_, 2) => dot_tile::<1, 2>(x, r, w, o, (b, inputs), y),
+                        (_, _) => dot_tile::<1, 1>(x, r, w, o, (b, inputs), y),
                     }
                 }
-                o += if pair { 2 } else { 1 };
+                o += step;
             }
             r += tile;
         }
@@ -118,13 +120,25 @@ mod avx2 {
                 }
                 c += LANES;
             }
+            // The last k - full (< 8) columns by masked loads, which read nothing past them: one
+            // more step where a scalar loop cost a fifth of a 295-wide layer.
+            if full < k {
+                let lanes = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+                let mask = _mm256_cmpgt_epi32(_mm256_set1_epi32((k - full) as i32), lanes);
+                let mut wv = [_mm256_setzero_ps(); O];
+                for (j, wv) in wv.iter_mut().enumerate() {
+                    *wv = _mm256_maskload_ps(w.add(j * k + full), mask);
+                }
+                for (i, acc) in acc.iter_mut().enumerate() {
+                    let xv = _mm256_maskload_ps(x.add(i * k + full), mask);
+                    for (acc, wv) in acc.iter_mut().zip(&wv) {
+                        *acc = _mm256_fmadd_ps(xv, *wv, *acc);
+                    }
+                }
+            }
             for (i, acc) in acc.iter().enumerate() {
                 for (j, acc) in acc.iter().enumerate() {
-                    let mut s = lane_sum(*acc);
-                    for c in full..k {
-                        s += *x.add(i * k + c) * *w.add(j * k + c);
-                    }
-                    y[(r + i) * outputs + o + j] = s + b[o + j];
+                    y[(r + i) * outputs + o + j] = lane_sum(*acc) + b[o + j];
                 }
             }
         }

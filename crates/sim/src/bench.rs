@@ -40,6 +40,28 @@ fn wiggle(step: usize, env: usize) -> Vec<f32> {
     (0..NUM_DOFS).map(|i| 0.05 * ((step * 7 + i * 13 + env * 3) as f32 * 0.1).sin()).collect()
 }
 
+fn stand(humanoid: &Humanoid, env: &mut crate::Env) {
+    env.reset(&humanoid.standing_qpos(), &vec![0.0; humanoid.nv()]).expect("standing pose");
+}
+
+/// `VecEnv::step` for `envs` environments on the current rayon pool's threads, in control steps
+/// per second (`flowmimic bench track` sets PPO's rate beside it).
+pub fn vec_env(humanoid: &Arc<Humanoid>, envs: usize, repeats: usize) -> Measurement {
+    let control_steps = 60;
+    let mut batch = VecEnv::new(humanoid, envs);
+    let actions: Vec<Vec<f32>> = (0..control_steps).map(|s| (0..envs).flat_map(|e| wiggle(s, e)).collect()).collect();
+    Measurement {
+        name: format!("VecEnv::step, {envs} envs on {} threads", rayon::current_num_threads()),
+        per_second: rate(repeats, control_steps * envs, || {
+            batch.envs_mut().iter_mut().for_each(|env| stand(humanoid, env));
+            for a in &actions {
+                batch.step(a).expect("bench step");
+            }
+        }),
+        unit: "control steps",
+    }
+}
+
 /// Raw MuJoCo steps, control steps for 1 and `envs` environments, and state reads.
 pub fn run(humanoid: &Arc<Humanoid>, envs: usize, repeats: usize) -> Vec<Measurement> {
     let control_steps = 60;
@@ -47,13 +69,10 @@ pub fn run(humanoid: &Arc<Humanoid>, envs: usize, repeats: usize) -> Vec<Measure
 
     let mut env = humanoid.env();
     let physics_steps = control_steps * humanoid.config().substeps;
-    let reset = |env: &mut crate::Env| {
-        env.reset(&humanoid.standing_qpos(), &vec![0.0; humanoid.nv()]).expect("standing pose");
-    };
     out.push(Measurement {
         name: "MuJoCo mj_step, 1 env".into(),
         per_second: rate(repeats, physics_steps, || {
-            reset(&mut env);
+            stand(humanoid, &mut env);
             for _ in 0..physics_steps {
                 env.physics_step();
             }
@@ -64,26 +83,14 @@ pub fn run(humanoid: &Arc<Humanoid>, envs: usize, repeats: usize) -> Vec<Measure
     out.push(Measurement {
         name: "Env::step (30 Hz), 1 env".into(),
         per_second: rate(repeats, control_steps, || {
-            reset(&mut env);
+            stand(humanoid, &mut env);
             for a in &actions {
                 env.step(a).expect("bench step");
             }
         }),
         unit: "control steps",
     });
-    let mut batch = VecEnv::new(humanoid, envs);
-    let batch_actions: Vec<Vec<f32>> =
-        (0..control_steps).map(|s| (0..envs).flat_map(|e| wiggle(s, e)).collect()).collect();
-    out.push(Measurement {
-        name: format!("VecEnv::step, {envs} envs on {} threads", rayon::current_num_threads()),
-        per_second: rate(repeats, control_steps * envs, || {
-            batch.envs_mut().iter_mut().for_each(&reset);
-            for a in &batch_actions {
-                batch.step(a).expect("bench step");
-            }
-        }),
-        unit: "control steps",
-    });
+    out.push(vec_env(humanoid, envs, repeats));
     let reads = 2000;
     out.push(Measurement {
         name: "Env::state (165-d features)".into(),

@@ -99,15 +99,19 @@ impl Policy {
     }
 }
 
-fn log_prob(u: &[f32], mean: &[f32], log_std: &[f32]) -> f32 {
-    u.iter()
-        .zip(mean)
-        .zip(log_std)
-        .map(|((u, m), s)| {
-            let z = (u - m) / s.exp();
-            -0.5 * z * z - s - 0.918_938_5
-        })
-        .sum()
+/// Log-density of `u` under a diagonal Gaussian; `inv_std` is `exp(-log_std)`, computed once per
+/// batch (an `exp` per element was a visible share of the update).
+fn log_prob(u: &[f32], mean: &[f32], log_std: &[f32], inv_std: &[f32]) -> f32 {
+    let mut sum = 0.0;
+    for j in 0..u.len() {
+        let z = (u[j] - mean[j]) * inv_std[j];
+        sum += -0.5 * z * z - log_std[j] - 0.918_938_5;
+    }
+    sum
+}
+
+fn inverse_std(log_std: &[f32]) -> Vec<f32> {
+    log_std.iter().map(|s| (-s).exp()).collect()
 }
 
 /// One rollout of `steps x envs` transitions (row-major: step, then env).
@@ -140,15 +144,20 @@ pub fn sample(policy: &Policy, obs: &[f32], n: usize, rng: &mut impl Rng) -> Sam
     let mean = policy.actor.predict(obs, n);
     let values = policy.critic.predict(obs, n);
     let act = policy.log_std.len();
+    let std: Vec<f32> = policy.log_std.iter().map(|s| s.exp()).collect();
+    let inv_std = inverse_std(&policy.log_std);
     let mut actions = mean.clone();
     for row in actions.chunks_mut(act) {
-        for (a, s) in row.iter_mut().zip(&policy.log_std) {
+        for (a, s) in row.iter_mut().zip(&std) {
             let z: f32 = StandardNormal.sample(rng);
-            *a += s.exp() * z;
+            *a += s * z;
         }
     }
     let log_probs = (0..n)
-        .map(|i| log_prob(&actions[i * act..(i + 1) * act], &mean[i * act..(i + 1) * act], &policy.log_std))
+        .map(|i| {
+            let (u, m) = (&actions[i * act..(i + 1) * act], &mean[i * act..(i + 1) * act]);
+            log_prob(u, m, &policy.log_std, &inv_std)
+        })
         .collect();
     Sampled { actions, means: mean, log_probs, values }
 }
@@ -227,10 +236,11 @@ pub fn update(
             let mut g_log_std = vec![0.0f32; act];
             let (mut surr, mut vloss, mut kl, mut clipped) = (0.0, 0.0, 0.0, 0.0);
             let inv = 1.0 / mb as f32;
+            let inv_std = inverse_std(&policy.log_std);
             for (row, &k) in chunk.iter().enumerate() {
                 let m = &actor_tape.output[row * act..(row + 1) * act];
                 let u = &actions[row * act..(row + 1) * act];
-                let ratio = (log_prob(u, m, &policy.log_std) - r.log_probs[k]).exp();
+                let ratio = (log_prob(u, m, &policy.log_std, &inv_std) - r.log_probs[k]).exp();
                 let a = adv[k];
                 let unclipped = ratio * a;
                 let clipped_obj = ratio.clamp(1.0 - clip, 1.0 + clip) * a;
@@ -240,9 +250,8 @@ pub fn update(
                 clipped += if active { 0.0 } else { inv };
                 let g_logp = if active { -ratio * a * inv } else { 0.0 };
                 for j in 0..act {
-                    let s = policy.log_std[j].exp();
-                    let z = (u[j] - m[j]) / s;
-                    g_mean[row * act + j] = g_logp * z / s;
+                    let z = (u[j] - m[j]) * inv_std[j];
+                    g_mean[row * act + j] = g_logp * z * inv_std[j];
                     g_log_std[j] += g_logp * (z * z - 1.0);
                 }
                 // Clipped value loss (coefficient cfg.value_coef), as rsl_rl.
@@ -271,11 +280,18 @@ pub fn update(
             }
             // Adaptive learning rate (rsl_rl): KL from the policy that collected the data to
             // the current one, before this step.
+            // Per dimension: s1 - s0 + (var0 + (m0 - m1)^2) / (2 var1) - 1/2.
+            let (var0, half_inv_var1): (Vec<f32>, Vec<f32>) = r
+                .log_std
+                .iter()
+                .zip(&policy.log_std)
+                .map(|(s0, s1)| ((2.0 * s0).exp(), 0.5 * (-2.0 * s1).exp()))
+                .unzip();
             for row in 0..mb {
                 for j in 0..act {
                     let (s0, s1) = (r.log_std[j], policy.log_std[j]);
                     let (m0, m1) = (old_means[row * act + j], actor_tape.output[row * act + j]);
-                    kl += (s1 - s0 + ((2.0 * s0).exp() + (m0 - m1).powi(2)) / (2.0 * (2.0 * s1).exp()) - 0.5) * inv;
+                    kl += (s1 - s0 + (var0[j] + (m0 - m1).powi(2)) * half_inv_var1[j] - 0.5) * inv;
                 }
             }
             let target = cfg.kl_target as f32;
