@@ -245,8 +245,9 @@ pub fn train(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, out: &Path, cfg: &Track
 }
 
 /// `flowmimic bench track`: PPO's throughput on 1 and all cores, split into physics, network
-/// and update, beside `VecEnv::step` of as many environments on as many threads measured just
-/// before it (the physics alone: the rate PPO would reach with a free update).
+/// and update, beside `VecEnv::step` of as many environments on as many threads timed before
+/// each iteration (the physics alone: the rate PPO would reach with a free update), and the
+/// share of each iteration that PPO's own physics takes.
 pub fn bench(humanoid: &Arc<Humanoid>, cfg: &TrackConfig, iterations: usize) -> Result<()> {
     let clip = flowmimic_motion::generate(humanoid, "walk", &Default::default())?.0;
     println!(
@@ -265,23 +266,32 @@ pub fn bench(humanoid: &Arc<Humanoid>, cfg: &TrackConfig, iterations: usize) -> 
         update_flops / 1e9
     );
     println!(
-        "{:>7} {:>12} {:>11} {:>11} {:>11} {:>12} {:>13} {:>10}",
-        "threads", "env steps/s", "physics s", "network s", "update s", "update/peak", "VecEnv /s", "PPO/VecEnv"
+        "{:>7} {:>12} {:>11} {:>11} {:>11} {:>12} {:>13} {:>10} {:>14}",
+        "threads",
+        "env steps/s",
+        "physics s",
+        "network s",
+        "update s",
+        "update/peak",
+        "VecEnv /s",
+        "PPO/VecEnv",
+        "physics share"
     );
     let all = std::thread::available_parallelism().map_or(1, |n| n.get());
     for threads in if all > 1 { vec![1, all] } else { vec![1] } {
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
-        let vec_env = pool.install(|| flowmimic_sim::bench::vec_env(humanoid, cfg.envs, 5)).per_second;
-        let log = flowmimic_track::train::bench(humanoid, vec![clip.clone()], cfg.clone(), iterations, threads)?;
+        let report = flowmimic_track::train::bench(humanoid, vec![clip.clone()], cfg.clone(), iterations, threads)?;
+        let log = &report.log;
         let fraction = update_flops / f64::from(log.update_seconds) / 1e9 / peak;
-        let steps = f64::from(log.steps_per_second);
         println!(
-            "{threads:>7} {steps:>12.0} {:>11.3} {:>11.3} {:>11.3} {:>11.0}% {vec_env:>13.0} {:>9.0}%",
+            "{threads:>7} {:>12.0} {:>11.3} {:>11.3} {:>11.3} {:>11.0}% {:>13.0} {:>9.0}% {:>13.0}%",
+            log.steps_per_second,
             log.physics_seconds,
             log.network_seconds,
             log.update_seconds,
             100.0 * fraction,
-            100.0 * steps / vec_env
+            report.vec_env_per_second,
+            100.0 * report.ppo_over_vec_env,
+            100.0 * report.physics_share
         );
     }
     Ok(())

@@ -70,7 +70,7 @@ fn serial_gemm(
 pub(crate) fn forward(x: &[f32], rows: usize, w: &[f32], b: &[f32], inputs: usize) -> Vec<f32> {
     let outputs = b.len();
     debug_assert_eq!(w.len(), inputs * outputs);
-    if small::available() {
+    if small::available() && !small::sgemm_is_faster(rows) {
         let mut y = vec![0.0; rows * outputs];
         let work = rows * inputs * outputs;
         by_rows((x, inputs), (&mut y, outputs), rows, work, |x, n, y| small::forward(x, n, w, b, inputs, y));
@@ -164,6 +164,26 @@ mod tests {
             });
             assert_eq!(serial, split);
         }
+    }
+
+    #[test]
+    fn a_forward_product_is_the_same_on_either_side_of_the_sgemm_threshold() {
+        // Wherever SGEMM takes the many-row products (AVX-512), it must agree with the direct
+        // kernels that take them elsewhere.
+        if !small::available() {
+            return;
+        }
+        let (rows, inputs, outputs) = (1100, 37, 19);
+        let value = |i: usize| ((i * 31) % 103) as f32 / 51.0 - 1.0;
+        let (x, w, b): (Vec<f32>, Vec<f32>, Vec<f32>) = (
+            (0..rows * inputs).map(value).collect(),
+            (0..outputs * inputs).map(|i| value(i + 5)).collect(),
+            (0..outputs).map(value).collect(),
+        );
+        let mut direct = vec![0.0; rows * outputs];
+        small::forward(&x, rows, &w, &b, inputs, &mut direct);
+        let y = forward(&x, rows, &w, &b, inputs);
+        assert!(y.iter().zip(&direct).all(|(a, b)| (a - b).abs() <= 1e-5 * (1.0 + b.abs())));
     }
 
     #[test]

@@ -19,6 +19,24 @@ pub(crate) fn available() -> bool {
     }
 }
 
+/// Rows from which SGEMM's forward product beats these kernels on a CPU with AVX-512, where
+/// `matrixmultiply` runs 16-lane kernels against these 8: a PPO minibatch of 1,408 rows through
+/// the 295-256-128-64 networks took 6.9-7.3 ms against 8.6-8.9 (README, Benchmarks).
+const SGEMM_ROWS_AVX512: usize = 1024;
+
+/// Whether the forward product of `rows` rows is faster on SGEMM than on these kernels.
+pub(crate) fn sgemm_is_faster(rows: usize) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        rows >= SGEMM_ROWS_AVX512 && std::is_x86_feature_detected!("avx512f")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = rows;
+        false
+    }
+}
+
 /// `y[r][o] = x[r][..] . w[o][..] + b[o]` into `y` (rows x outputs); `x` is rows x inputs, `w`
 /// outputs x inputs.
 pub(crate) fn forward(x: &[f32], rows: usize, w: &[f32], b: &[f32], inputs: usize, y: &mut [f32]) {

@@ -44,20 +44,40 @@ fn stand(humanoid: &Humanoid, env: &mut crate::Env) {
     env.reset(&humanoid.standing_qpos(), &vec![0.0; humanoid.nv()]).expect("standing pose");
 }
 
+/// `VecEnv::step` of a fixed batch of environments, set up once and timed as often as asked, so
+/// that `flowmimic bench track` can time it between PPO iterations on the same threads.
+pub struct VecEnvTimer {
+    humanoid: Arc<Humanoid>,
+    batch: VecEnv,
+    actions: Vec<Vec<f32>>,
+}
+
+impl VecEnvTimer {
+    pub fn new(humanoid: &Arc<Humanoid>, envs: usize) -> Self {
+        let control_steps = 60;
+        let actions = (0..control_steps).map(|s| (0..envs).flat_map(|e| wiggle(s, e)).collect()).collect();
+        Self { humanoid: Arc::clone(humanoid), batch: VecEnv::new(humanoid, envs), actions }
+    }
+
+    /// Control steps per second of one burst from the standing pose, on the current rayon pool.
+    pub fn per_second(&mut self) -> f64 {
+        let t = Instant::now();
+        self.batch.envs_mut().iter_mut().for_each(|env| stand(&self.humanoid, env));
+        for a in &self.actions {
+            self.batch.step(a).expect("bench step");
+        }
+        (self.actions.len() * self.batch.len()) as f64 / t.elapsed().as_secs_f64()
+    }
+}
+
 /// `VecEnv::step` for `envs` environments on the current rayon pool's threads, in control steps
-/// per second (`flowmimic bench track` sets PPO's rate beside it).
+/// per second: the median of `repeats` bursts after one warm-up.
 pub fn vec_env(humanoid: &Arc<Humanoid>, envs: usize, repeats: usize) -> Measurement {
-    let control_steps = 60;
-    let mut batch = VecEnv::new(humanoid, envs);
-    let actions: Vec<Vec<f32>> = (0..control_steps).map(|s| (0..envs).flat_map(|e| wiggle(s, e)).collect()).collect();
+    let mut timer = VecEnvTimer::new(humanoid, envs);
+    timer.per_second();
     Measurement {
         name: format!("VecEnv::step, {envs} envs on {} threads", rayon::current_num_threads()),
-        per_second: rate(repeats, control_steps * envs, || {
-            batch.envs_mut().iter_mut().for_each(|env| stand(humanoid, env));
-            for a in &actions {
-                batch.step(a).expect("bench step");
-            }
-        }),
+        per_second: median((0..repeats).map(|_| timer.per_second()).collect()),
         unit: "control steps",
     }
 }

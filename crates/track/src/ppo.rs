@@ -141,8 +141,7 @@ pub struct Sampled {
 
 /// Samples actions for normalised observations.
 pub fn sample(policy: &Policy, obs: &[f32], n: usize, rng: &mut impl Rng) -> Sampled {
-    let mean = policy.actor.predict(obs, n);
-    let values = policy.critic.predict(obs, n);
+    let (mean, values) = rayon::join(|| policy.actor.predict(obs, n), || policy.critic.predict(obs, n));
     let act = policy.log_std.len();
     let std: Vec<f32> = policy.log_std.iter().map(|s| s.exp()).collect();
     let inv_std = inverse_std(&policy.log_std);
@@ -229,8 +228,10 @@ pub fn update(
             let obs = gather(&r.obs, obs_dim);
             let actions = gather(&r.actions, act);
             let old_means = gather(&r.means, act);
-            let actor_tape = policy.actor.forward(&obs, mb);
-            let critic_tape = policy.critic.forward(&obs, mb);
+            // Actor and critic side by side, one per thread: their products are of equal size,
+            // and two whole networks in parallel waste less than splitting each product.
+            let (actor_tape, critic_tape) =
+                rayon::join(|| policy.actor.forward(&obs, mb), || policy.critic.forward(&obs, mb));
             let mut g_mean = vec![0.0f32; mb * act];
             let mut g_value = vec![0.0f32; mb];
             let mut g_log_std = vec![0.0f32; act];
@@ -270,8 +271,11 @@ pub fn update(
             let entropy: f32 = policy.log_std.iter().map(|s| s + 1.418_938_5).sum();
             let mut grads = vec![0.0; policy.num_params()];
             let (na, nc) = (policy.actor.num_params(), policy.critic.num_params());
-            policy.actor.backward(&actor_tape, &g_mean, &mut grads[..na]);
-            policy.critic.backward(&critic_tape, &g_value, &mut grads[na..na + nc]);
+            let (actor_grads, rest) = grads.split_at_mut(na);
+            rayon::join(
+                || policy.actor.backward(&actor_tape, &g_mean, actor_grads),
+                || policy.critic.backward(&critic_tape, &g_value, &mut rest[..nc]),
+            );
             grads[na + nc..].copy_from_slice(&g_log_std);
             let norm = grads.iter().map(|g| g * g).sum::<f32>().sqrt();
             if norm > cfg.max_grad_norm as f32 {

@@ -916,35 +916,62 @@ pub fn evaluate(
     })
 }
 
-/// Training throughput on `threads` cores: medians over `iterations` iterations (after one
-/// warm-up) of environment steps per second and the seconds per iteration spent in physics
-/// (stepping, rewards, observations), the policy's forward passes, and the PPO update.
+/// PPO's throughput beside the physics alone, from [`bench`]: medians over the iterations.
+#[derive(Clone, Debug)]
+pub struct BenchReport {
+    /// Medians of environment steps per second and of the seconds per iteration spent in
+    /// physics (stepping, rewards, observations), the policy's forward passes and the update.
+    pub log: IterationLog,
+    /// `VecEnv::step` of as many environments on the same threads, control steps per second.
+    pub vec_env_per_second: f64,
+    /// PPO's rate over the `VecEnv` rate timed just before the same iteration.
+    pub ppo_over_vec_env: f64,
+    /// The share of each iteration spent in PPO's own physics.
+    pub physics_share: f64,
+}
+
+/// Training throughput on `threads` cores over `iterations` iterations (after one warm-up).
+/// Before each iteration a burst of `VecEnv::step` of as many environments runs on the same
+/// threads, so that the machine's drift (it moves by a fifth within minutes on shared cores)
+/// reaches both sides of each ratio alike.
 pub fn bench(
     humanoid: &Arc<Humanoid>,
     clips: Vec<Clip>,
     cfg: TrackConfig,
     iterations: usize,
     threads: usize,
-) -> Result<IterationLog, TrackError> {
+) -> Result<BenchReport, TrackError> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
         .map_err(|e| TrackError::Invalid(format!("thread pool: {e}")))?;
     pool.install(|| {
+        let mut vec_env = flowmimic_sim::bench::VecEnvTimer::new(humanoid, cfg.envs);
         let mut trainer = Trainer::new(humanoid, clips, cfg)?;
+        vec_env.per_second();
         trainer.iterate()?;
-        let logs: Vec<IterationLog> = (0..iterations.max(1)).map(|_| trainer.iterate()).collect::<Result<_, _>>()?;
-        let median = |f: fn(&IterationLog) -> f32| {
-            let mut v: Vec<f32> = logs.iter().map(f).collect();
-            v.sort_by(f32::total_cmp);
+        let mut rounds = Vec::new();
+        for _ in 0..iterations.max(1) {
+            let physics_rate = vec_env.per_second();
+            rounds.push((physics_rate, trainer.iterate()?));
+        }
+        let median = |f: &dyn Fn(&(f64, IterationLog)) -> f64| {
+            let mut v: Vec<f64> = rounds.iter().map(f).collect();
+            v.sort_by(f64::total_cmp);
             v[v.len() / 2]
         };
-        Ok(IterationLog {
-            steps_per_second: median(|l| l.steps_per_second),
-            physics_seconds: median(|l| l.physics_seconds),
-            network_seconds: median(|l| l.network_seconds),
-            update_seconds: median(|l| l.update_seconds),
-            ..logs[0].clone()
+        let n = (trainer.cfg.envs * trainer.cfg.horizon) as f64;
+        Ok(BenchReport {
+            log: IterationLog {
+                steps_per_second: median(&|(_, l)| f64::from(l.steps_per_second)) as f32,
+                physics_seconds: median(&|(_, l)| f64::from(l.physics_seconds)) as f32,
+                network_seconds: median(&|(_, l)| f64::from(l.network_seconds)) as f32,
+                update_seconds: median(&|(_, l)| f64::from(l.update_seconds)) as f32,
+                ..rounds[0].1.clone()
+            },
+            vec_env_per_second: median(&|(v, _)| *v),
+            ppo_over_vec_env: median(&|(v, l)| f64::from(l.steps_per_second) / v),
+            physics_share: median(&|(_, l)| f64::from(l.physics_seconds) * f64::from(l.steps_per_second) / n),
         })
     })
 }

@@ -137,3 +137,21 @@ fn one_policy_trains_on_several_clips() {
     assert!(err.contains("hidden") && err.contains("policy.safetensors"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn bench_reports_ppo_beside_the_physics_of_the_same_iterations() {
+    let (h, clip) = setup();
+    let report = flowmimic_track::train::bench(&h, vec![clip], tiny(), 3, 2).unwrap();
+    let log = &report.log;
+    for (name, value) in [
+        ("env steps/s", f64::from(log.steps_per_second)),
+        ("physics s", f64::from(log.physics_seconds)),
+        ("update s", f64::from(log.update_seconds)),
+        ("VecEnv /s", report.vec_env_per_second),
+        ("PPO / VecEnv", report.ppo_over_vec_env),
+    ] {
+        assert!(value.is_finite() && value > 0.0, "{name}: {value}");
+    }
+    // Physics is part of each iteration, never more than all of it.
+    assert!(report.physics_share > 0.0 && report.physics_share <= 1.0, "{}", report.physics_share);
+}
