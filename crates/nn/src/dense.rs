@@ -76,7 +76,7 @@ pub(crate) fn forward(x: &[f32], rows: usize, w: &[f32], b: &[f32], inputs: usiz
         by_rows((x, inputs), (&mut y, outputs), rows, work, |x, n, y| small::forward(x, n, w, b, inputs, y));
         return y;
     }
-    let mut y: Vec<f32> = (0..rows).flat_map(|_| b.iter().copied()).collect();
+    let mut y = b.repeat(rows);
     gemm(rows, inputs, outputs, (x, inputs as isize, 1), (w, 1, inputs as isize), &mut y, 1.0);
     y
 }

@@ -141,7 +141,12 @@ impl Mlp {
 
     /// All parameters, layer by layer: weights then bias.
     pub fn params(&self) -> Vec<f32> {
-        self.layers.iter().flat_map(|l| l.weight.iter().chain(&l.bias).copied()).collect()
+        let mut p = Vec::with_capacity(self.num_params());
+        for l in &self.layers {
+            p.extend_from_slice(&l.weight);
+            p.extend_from_slice(&l.bias);
+        }
+        p
     }
 
     pub fn set_params(&mut self, p: &[f32]) {
@@ -174,10 +179,15 @@ impl Adam {
         self.t += 1;
         let c1 = 1.0 - b1.powi(self.t as i32);
         let c2 = 1.0 - b2.powi(self.t as i32);
-        for ((p, g), (m, v)) in params.iter_mut().zip(grads).zip(self.m.iter_mut().zip(self.v.iter_mut())) {
-            *m = b1 * *m + (1.0 - b1) * g;
-            *v = b2 * *v + (1.0 - b2) * g * g;
-            *p -= lr * (*m / c1) / ((*v / c2).sqrt() + eps);
+        // Indexed over slices of one length, so the compiler drops the bounds checks and
+        // vectorises the square roots and divisions (the zipped form ran element by element).
+        let n = params.len();
+        let (grads, m, v) = (&grads[..n], &mut self.m[..n], &mut self.v[..n]);
+        for i in 0..n {
+            let g = grads[i];
+            m[i] = b1 * m[i] + (1.0 - b1) * g;
+            v[i] = b2 * v[i] + (1.0 - b2) * g * g;
+            params[i] -= lr * (m[i] / c1) / ((v[i] / c2).sqrt() + eps);
         }
     }
 }

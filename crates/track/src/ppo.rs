@@ -222,8 +222,11 @@ pub fn update(
     for _ in 0..cfg.epochs {
         order.shuffle(rng);
         for chunk in order.chunks(mb).filter(|c| c.len() == mb) {
+            // Row copies, where an element-wise iterator took a tenth of the update.
             let gather = |src: &[f32], w: usize| {
-                chunk.iter().flat_map(|&k| src[k * w..(k + 1) * w].iter().copied()).collect::<Vec<f32>>()
+                let mut rows = Vec::with_capacity(chunk.len() * w);
+                chunk.iter().for_each(|&k| rows.extend_from_slice(&src[k * w..(k + 1) * w]));
+                rows
             };
             let obs = gather(&r.obs, obs_dim);
             let actions = gather(&r.actions, act);
