@@ -1,6 +1,6 @@
 //! `flowmimic collect` and `flowmimic dataset ...`: noisy expert rollouts and their inspection.
 
-use anyhow::Result;
+use anyhow::{Result, bail};
 use clap::Subcommand;
 use flowmimic_data::{CollectConfig, Dataset, ShardInfo, Stats, WindowSpec, collect};
 use flowmimic_plot::{Chart, Series};
@@ -30,28 +30,50 @@ pub enum DatasetCommand {
     },
 }
 
-/// `flowmimic collect`: every expert run on its clip, each appended to the dataset in `out`.
-pub fn run_collect(humanoid: &Arc<Humanoid>, runs: Vec<PathBuf>, out: PathBuf, cfg: CollectConfig) -> Result<()> {
+/// `flowmimic collect`: every expert run on its clips (the run's own, or `clips` for a single
+/// run), each appended to the dataset in `out`.
+pub fn run_collect(
+    humanoid: &Arc<Humanoid>,
+    runs: Vec<PathBuf>,
+    clips: &[PathBuf],
+    out: PathBuf,
+    cfg: CollectConfig,
+) -> Result<()> {
+    if !clips.is_empty() && runs.len() != 1 {
+        bail!("--clip pairs clips with one expert run, and {} runs were given", runs.len());
+    }
+    // Every clip is read before the first rollout, so a bad one costs nothing.
+    let clips =
+        clips.iter().map(|path| Ok(flowmimic_motion::Clip::load(humanoid, path)?)).collect::<Result<Vec<_>>>()?;
     let mut dataset = Dataset::open_or_create(&out)?;
     for run in &runs {
-        collect_run(humanoid, run, &mut dataset, &cfg)?;
+        collect_run(humanoid, run, &clips, &mut dataset, &cfg)?;
     }
     println!("dataset {} now holds {} clips", out.display(), dataset.manifest.shards.len());
     Ok(())
 }
 
-/// One run: its expert (policy.safetensors) on its clip (clip.safetensors).
+/// One run: its expert (policy.safetensors) on `clips`, or on its own clips (clip.safetensors)
+/// when there are none.
 fn collect_run(
     humanoid: &Arc<Humanoid>,
     run: &std::path::Path,
+    clips: &[flowmimic_motion::Clip],
     dataset: &mut Dataset,
     cfg: &CollectConfig,
 ) -> Result<()> {
     let expert = run.join(crate::track::RUN_POLICY);
     let ck = Checkpoint::read(&expert)?;
     let (expert_cfg, policy) = (ck.config()?, ck.policy()?);
-    for clip in crate::track::run_clips(humanoid, run)? {
-        collect_clip(humanoid, &expert, &clip, &policy, &expert_cfg, dataset, cfg)?;
+    let own;
+    let clips = if clips.is_empty() {
+        own = crate::track::run_clips(humanoid, run)?;
+        &own
+    } else {
+        clips
+    };
+    for clip in clips {
+        collect_clip(humanoid, &expert, clip, &policy, &expert_cfg, dataset, cfg)?;
     }
     Ok(())
 }

@@ -91,6 +91,11 @@ enum Command {
         /// policy.safetensors and clip.safetensors).
         #[arg(required = true)]
         runs: Vec<PathBuf>,
+        /// Clips to collect on instead of the run's own, repeatable, with exactly one run: a
+        /// shipped expert on its clip from `flowmimic motion corpus`
+        /// (`collect pretrained/experts/09_12 --clip runs/corpus/09_12.clip.safetensors`).
+        #[arg(long)]
+        clip: Vec<PathBuf>,
         /// Dataset directory (created, or appended to).
         #[arg(short, long, default_value = "runs/data")]
         out: PathBuf,
@@ -268,8 +273,8 @@ fn run(cli: Cli) -> Result<()> {
     let files: Vec<&Path> = cli.settings.config.iter().map(PathBuf::as_path).collect();
     let config = Config::load(&cli.settings.preset, &files)?;
     match cli.command {
-        Command::Collect { runs, out } => {
-            data::run_collect(&Humanoid::new(config.sim)?, runs, out, config.collect.clone())?
+        Command::Collect { runs, clip, out } => {
+            data::run_collect(&Humanoid::new(config.sim)?, runs, &clip, out, config.collect.clone())?
         }
         Command::Dataset(cmd) => data::run_dataset(cmd)?,
         Command::Demo { model, out, nfe } => demo::run(&model, &out, nfe, &Humanoid::new(config.sim)?)?,

@@ -101,7 +101,7 @@ pub fn run(config: &Config, preset: &str, out: &Path, clip_files: &[PathBuf]) ->
         if data.exists() {
             std::fs::remove_dir_all(&data).with_context(|| format!("removing {}", data.display()))?;
         }
-        crate::data::run_collect(&humanoid, experts.clone(), data.clone(), config.collect.clone())
+        crate::data::run_collect(&humanoid, experts.clone(), &[], data.clone(), config.collect.clone())
     })?;
     let mut model_keys = Vec::new();
     for objective in ["fm", "ddpm"] {

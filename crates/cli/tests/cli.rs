@@ -42,6 +42,15 @@ fn stages_connect_through_their_files() {
     assert!(!success && text.contains("start frame 45") && text.contains("clip w"), "{text}");
     let collect = ok(&dir, &["collect", "run", "-o", "data"]);
     assert!(collect.contains("steps/s") && collect.contains("fall rate"), "{collect}");
+    // An expert on a clip named on the command line (a shipped expert holds none), and the
+    // clip pairing refused where it would be ambiguous.
+    ok(&dir, &["motion", "generate", "--duration", "1.0", "--name", "v", "--speed", "0.8", "-o", "clips"]);
+    let paired = ok(&dir, &["collect", "run", "--clip", "clips/v.clip.safetensors", "-o", "data-v"]);
+    assert!(paired.contains("collecting v ") && paired.contains("holds 1 clips"), "{paired}");
+    let (success, text) = flowmimic(&dir, &["collect", "run", "warm", "--clip", "clips/v.clip.safetensors"]);
+    assert!(!success && text.contains("--clip pairs clips with one expert run"), "{text}");
+    let (success, text) = flowmimic(&dir, &["collect", "run", "--clip", "clips/missing.clip.safetensors"]);
+    assert!(!success && text.contains("missing.clip.safetensors"), "{text}");
     let inspect = ok(&dir, &["dataset", "inspect", "data"]);
     assert!(inspect.contains("feature ranges") && dir.join("data/coverage_root_speed.png").exists(), "{inspect}");
     assert!(inspect.contains("backward") && dir.join("data/coverage_yaw_rate.png").exists(), "{inspect}");
