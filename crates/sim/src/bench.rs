@@ -59,14 +59,24 @@ impl VecEnvTimer {
         Self { humanoid: Arc::clone(humanoid), batch: VecEnv::new(humanoid, envs), actions }
     }
 
-    /// Control steps per second of one burst from the standing pose, on the current rayon pool.
-    pub fn per_second(&mut self) -> f64 {
-        let t = Instant::now();
+    /// One burst from the standing pose, on the current rayon pool.
+    fn burst(&mut self) {
         self.batch.envs_mut().iter_mut().for_each(|env| stand(&self.humanoid, env));
         for a in &self.actions {
             self.batch.step(a).expect("bench step");
         }
-        (self.actions.len() * self.batch.len()) as f64 / t.elapsed().as_secs_f64()
+    }
+
+    /// Control steps in one burst.
+    fn steps(&self) -> usize {
+        self.actions.len() * self.batch.len()
+    }
+
+    /// Control steps per second of one burst.
+    pub fn per_second(&mut self) -> f64 {
+        let t = Instant::now();
+        self.burst();
+        self.steps() as f64 / t.elapsed().as_secs_f64()
     }
 }
 
@@ -74,10 +84,10 @@ impl VecEnvTimer {
 /// per second: the median of `repeats` bursts after one warm-up.
 pub fn vec_env(humanoid: &Arc<Humanoid>, envs: usize, repeats: usize) -> Measurement {
     let mut timer = VecEnvTimer::new(humanoid, envs);
-    timer.per_second();
+    let steps = timer.steps();
     Measurement {
         name: format!("VecEnv::step, {envs} envs on {} threads", rayon::current_num_threads()),
-        per_second: median((0..repeats).map(|_| timer.per_second()).collect()),
+        per_second: rate(repeats, steps, || timer.burst()),
         unit: "control steps",
     }
 }
