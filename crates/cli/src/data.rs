@@ -3,6 +3,7 @@
 use anyhow::{Result, bail};
 use clap::Subcommand;
 use flowmimic_data::{CollectConfig, Dataset, ShardInfo, Stats, WindowSpec, collect};
+use flowmimic_motion::Coverage;
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::skeleton::body;
 use flowmimic_sim::state::offset;
@@ -132,6 +133,7 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
     let (mut speeds, mut hands, mut walking) = (Vec::new(), Vec::new(), Vec::new());
     let (mut s_lo, mut s_hi) = (vec![f32::MAX; STATE_DIM], vec![f32::MIN; STATE_DIM]);
     let (mut a_lo, mut a_hi) = (f32::MAX, f32::MIN);
+    let mut per_clip = Vec::new();
     for (info, shard) in &shards {
         let mut steps: BTreeMap<String, usize> = BTreeMap::new();
         for &s in &shard.sigma {
@@ -160,7 +162,26 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
             a_lo = a_lo.min(a);
             a_hi = a_hi.max(a);
         }
-        walking.extend(walking_velocities(shard));
+        let clip_walking = walking_velocities(shard);
+        let (episodes, falls) =
+            info.falls.iter().fold((0, 0), |(e, f), &(_, episodes, falls)| (e + episodes, f + falls));
+        walking.extend_from_slice(&clip_walking);
+        per_clip.push((info.clip.clone(), Coverage::of(clip_walking), episodes, falls));
+    }
+    // Per clip, so that one expert that steps in place or falls cannot hide behind the total.
+    println!(
+        "\n{:<20} {:>9} {:>9} {:>8} {:>13} {:>10}",
+        "clip", "steps", "backward", "turning", "sidestepping", "fall rate"
+    );
+    for (clip, cov, episodes, falls) in &per_clip {
+        println!(
+            "{clip:<20} {:>9} {:>8.1}% {:>7.1}% {:>12.1}% {:>9.0}%",
+            cov.steps,
+            100.0 * cov.backward,
+            100.0 * cov.turning,
+            100.0 * cov.sidestep,
+            100.0 * *falls as f64 / (*episodes).max(1) as f64
+        );
     }
     println!("\n{:>6} {:>9} {:>6} {:>10}", "sigma", "episodes", "falls", "fall rate");
     for (sigma, (episodes, falls, _)) in &per_sigma {
@@ -186,7 +207,7 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
         .series(Series::line("hands", flowmimic_plot::histogram(&hands, 0.0, 2.0, 40)))
         .save(&dir.join("coverage_hand_height"))?;
     println!("\nwrote coverage_root_speed and coverage_hand_height (.png, .svg) in {}", dir.display());
-    crate::motion::print_coverage(&flowmimic_motion::Coverage::of(walking), &dir)
+    crate::motion::print_coverage(&Coverage::of(walking), &dir)
 }
 
 /// Walking velocities of every step of a shard, each episode's root path measured on its own.

@@ -3,7 +3,7 @@
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use flowmimic_motion::{
-    Clip, Coverage, GaitParams, ImportOptions, Segment, Units, UpAxis, WanderParams, coverage, generator,
+    Clip, CorpusParams, Coverage, GaitParams, ImportOptions, Segment, Units, UpAxis, WanderParams, coverage, generator,
 };
 use flowmimic_plot::{Chart, Series, histogram};
 use flowmimic_sim::Humanoid;
@@ -68,8 +68,9 @@ pub enum MotionCommand {
         #[arg(short, long, default_value = "runs/clips")]
         out: PathBuf,
     },
-    /// The default varied-walking corpus: wandering walks (seeds 1, 2, ...) plus every capture
-    /// (.bvh, DeepMimic .txt) in a folder, with its quality table and coverage.
+    /// The default varied-walking corpus: wandering walks (seeds 1, 2, ...), a 10 s backward
+    /// walk (walk_back) and every walking capture (.bvh, DeepMimic .txt) in a folder, with its
+    /// quality table and coverage.
     Corpus {
         /// Wandering walks to generate.
         #[arg(long, default_value_t = 4)]
@@ -135,15 +136,16 @@ impl GaitArgs {
 
 fn header() {
     println!(
-        "{:<24} {:>6} {:>6} {:>6} {:>6} {:>7} {:>7} {:>6} {:>6}",
-        "clip", "frames", "sec", "m/s", "root z", "pen cm", "skate", "1-sup", "2-sup"
+        "{:<24} {:>6} {:>6} {:>6} {:>6} {:>7} {:>7} {:>6} {:>6} {:>6} {:>6} {:>6}",
+        "clip", "frames", "sec", "m/s", "root z", "pen cm", "skate", "1-sup", "2-sup", "back", "turn", "side"
     );
 }
 
 fn row(humanoid: &Arc<Humanoid>, clip: &Clip) {
     let q = clip.quality(humanoid);
+    let cov = Coverage::of(clip.walking_velocities());
     println!(
-        "{:<24} {:>6} {:>6.2} {:>6.2} {:>6.3} {:>7.2} {:>7.3} {:>5.0}% {:>5.0}%",
+        "{:<24} {:>6} {:>6.2} {:>6.2} {:>6.3} {:>7.2} {:>7.3} {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}%",
         clip.name,
         q.frames,
         q.duration,
@@ -152,7 +154,10 @@ fn row(humanoid: &Arc<Humanoid>, clip: &Clip) {
         100.0 * q.penetration_max,
         q.skating,
         100.0 * q.single_support,
-        100.0 * q.double_support
+        100.0 * q.double_support,
+        100.0 * cov.backward,
+        100.0 * cov.turning,
+        100.0 * cov.sidestep
     );
 }
 
@@ -270,11 +275,8 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     Ok(())
 }
 
-/// Mean speed above which a capture is not walking (DeepMimic's run is 3.2 m/s), m/s.
-const MAX_WALKING_SPEED: f64 = 2.0;
-
-/// The varied-walking corpus: `walks` wandering walks of `duration` s (seeds 1..=walks) and the
-/// captures in `mocap` (when the folder exists), written to `out`.
+/// The varied-walking corpus of `flowmimic_motion::corpus`, written to `out` (`mocap` is
+/// skipped with a note when it is not a folder).
 pub(crate) fn corpus(
     humanoid: &Arc<Humanoid>,
     walks: usize,
@@ -282,34 +284,18 @@ pub(crate) fn corpus(
     mocap: &Path,
     out: &Path,
 ) -> Result<Vec<Clip>> {
-    let mut clips = Vec::new();
-    for seed in 1..=walks as u64 {
-        let p = WanderParams { seed, duration };
-        clips.push(flowmimic_motion::wander(humanoid, &format!("wander_{seed}"), &p)?.0);
-    }
-    if mocap.is_dir() {
-        let mut files: Vec<PathBuf> = std::fs::read_dir(mocap)
-            .with_context(|| format!("reading {}", mocap.display()))?
-            .filter_map(|e| e.ok().map(|e| e.path()))
-            .filter(|p| p.extension().is_some_and(|e| e.eq_ignore_ascii_case("bvh") || e.eq_ignore_ascii_case("txt")))
-            .collect();
-        files.sort();
-        for file in files {
-            let clip = flowmimic_motion::import(humanoid, &file, &ImportOptions::default())?.clip;
-            let speed = clip.quality(humanoid).speed;
-            if speed > MAX_WALKING_SPEED {
-                eprintln!("note: {} moves at {speed:.1} m/s, not a walk: left out", file.display());
-                continue;
-            }
-            clips.push(clip);
-        }
-    } else {
+    if !mocap.is_dir() {
         eprintln!("note: {} is not a folder; the corpus has generated walks only", mocap.display());
     }
-    for clip in &clips {
+    let params = CorpusParams { walks, duration, mocap: mocap.is_dir().then(|| mocap.to_path_buf()) };
+    let corpus = flowmimic_motion::corpus(humanoid, &params)?;
+    for (file, why) in &corpus.left_out {
+        eprintln!("note: {} {why}: left out", file.display());
+    }
+    for clip in &corpus.clips {
         clip.save(&clip_path(out, &clip.name))?;
     }
-    Ok(clips)
+    Ok(corpus.clips)
 }
 
 /// Prints what a set of walking velocities covers and plots its histograms into `dir`.

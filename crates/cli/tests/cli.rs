@@ -54,6 +54,9 @@ fn stages_connect_through_their_files() {
     let inspect = ok(&dir, &["dataset", "inspect", "data"]);
     assert!(inspect.contains("feature ranges") && dir.join("data/coverage_root_speed.png").exists(), "{inspect}");
     assert!(inspect.contains("backward") && dir.join("data/coverage_yaw_rate.png").exists(), "{inspect}");
+    // Coverage and falls per clip as well as in total.
+    let per_clip = inspect.lines().filter(|l| l.starts_with("w ") && l.ends_with('%')).count();
+    assert!(inspect.contains("sidestepping  fall rate") && per_clip == 1, "{inspect}");
     let stats = ok(&dir, &["dataset", "stats", "data", "--history", "2", "--horizon", "3"]);
     assert!(stats.contains("windows") && dir.join("data/stats-N2-H3.safetensors").exists(), "{stats}");
     trajectory_model_trains_resumes_and_drives(&dir);

@@ -6,6 +6,7 @@
 
 pub mod bvh;
 pub mod clip;
+pub mod corpus;
 pub mod coverage;
 pub mod generator;
 pub mod joint_map;
@@ -13,6 +14,7 @@ pub mod landmarks;
 pub mod retarget;
 
 pub use clip::{Clip, Quality};
+pub use corpus::{Corpus, CorpusParams, corpus};
 pub use coverage::Coverage;
 pub use generator::{Command, GaitParams, Schedule, Segment, WanderParams, generate, scheduled, straight_walk, wander};
 

@@ -372,3 +372,26 @@ fn velocities_are_central_differences_of_the_poses() {
     assert_eq!(env.bodies().lin_vel, clip.bodies[10].lin_vel);
     let _ = DQuat::IDENTITY;
 }
+
+#[test]
+fn the_corpus_holds_the_wandering_walks_the_backward_walk_and_the_walking_captures() {
+    let h = humanoid();
+    let dir = mocap("");
+    let built = corpus(&h, &CorpusParams { walks: 2, duration: 6.0, mocap: Some(dir.clone()) }).unwrap();
+    let names: Vec<&str> = built.clips.iter().map(|c| c.name.as_str()).collect();
+    assert_eq!(
+        names,
+        ["wander_1", "wander_2", "walk_back", "02_01", "05_01", "07_01", "08_01", "09_12", "16_11", "humanoid3d_walk"]
+    );
+    // DeepMimic's run is the one capture that is not a walk.
+    assert_eq!(built.left_out.len(), 1, "{:?}", built.left_out);
+    assert_eq!(built.left_out[0].0, dir.join("humanoid3d_run.txt"));
+    assert!(built.left_out[0].1.contains("not a walk"), "{}", built.left_out[0].1);
+    // The backward walk walks backward (1 s windows of its root path), steadily.
+    let back = Coverage::of(built.clips[2].walking_velocities());
+    assert!(back.backward > 0.9, "backward in {:.0}% of its steps", 100.0 * back.backward);
+    assert!(back.turning < 0.05 && back.sidestep < 0.05, "turning {} sidestepping {}", back.turning, back.sidestep);
+    // Without a folder, the generated walks alone.
+    let generated = corpus(&h, &CorpusParams { walks: 1, duration: 6.0, mocap: None }).unwrap();
+    assert_eq!(generated.clips.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(), ["wander_1", "walk_back"]);
+}
