@@ -142,11 +142,14 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
         for (sigma, n) in &steps {
             println!("{:<20} {sigma:>6} {n:>9} {:>8.3}", info.clip, *n as f64 / CONTROL_HZ / 3600.0);
         }
+        let (mut clip_episodes, mut clip_falls) = (0, 0);
         for &(sigma, episodes, falls) in &info.falls {
             let e = per_sigma.entry(format!("{sigma:.2}")).or_default();
             e.0 += episodes;
             e.1 += falls;
             e.2 += 1;
+            clip_episodes += episodes;
+            clip_falls += falls;
         }
         for row in shard.state.chunks(STATE_DIM) {
             for (i, &x) in row.iter().enumerate() {
@@ -163,10 +166,8 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
             a_hi = a_hi.max(a);
         }
         let clip_walking = walking_velocities(shard);
-        let (episodes, falls) =
-            info.falls.iter().fold((0, 0), |(e, f), &(_, episodes, falls)| (e + episodes, f + falls));
         walking.extend_from_slice(&clip_walking);
-        per_clip.push((info.clip.clone(), Coverage::of(clip_walking), episodes, falls));
+        per_clip.push((info.clip.clone(), Coverage::of(clip_walking), clip_episodes, clip_falls));
     }
     // Per clip, so that one expert that steps in place or falls cannot hide behind the total.
     println!(

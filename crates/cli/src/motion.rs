@@ -284,10 +284,11 @@ pub(crate) fn corpus(
     mocap: &Path,
     out: &Path,
 ) -> Result<Vec<Clip>> {
-    if !mocap.is_dir() {
+    let folder = mocap.is_dir().then(|| mocap.to_path_buf());
+    if folder.is_none() {
         eprintln!("note: {} is not a folder; the corpus has generated walks only", mocap.display());
     }
-    let params = CorpusParams { walks, duration, mocap: mocap.is_dir().then(|| mocap.to_path_buf()) };
+    let params = CorpusParams { walks, duration, mocap: folder };
     let corpus = flowmimic_motion::corpus(humanoid, &params)?;
     for (file, why) in &corpus.left_out {
         eprintln!("note: {} {why}: left out", file.display());
