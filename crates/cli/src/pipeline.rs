@@ -122,7 +122,16 @@ pub fn run(config: &Config, preset: &str, out: &Path, clip_files: &[PathBuf]) ->
         eval::run(EvalCommand::Latency { common: common(), nfe: vec![1, 2, 5, 10, 20], guided: None }, &humanoid)?;
         let fm_only = || Common::new(models[..1].to_vec(), eval_dir.clone(), quick);
         eval::run(EvalCommand::Joystick { common: fm_only(), scales: vec![0.0, 3.0, 10.0, 30.0], nfe: 5 }, &humanoid)?;
-        eval::run(EvalCommand::Reach { common: fm_only(), scales: vec![0.0, 3.0, 10.0, 30.0], nfe: 5 }, &humanoid)?;
+        eval::run(
+            EvalCommand::Reach {
+                common: fm_only(),
+                scales: vec![0.0, 3.0, 10.0, 30.0],
+                nfe: 5,
+                heights: vec![0.9, 1.5],
+                approach: false,
+            },
+            &humanoid,
+        )?;
         Ok(())
     })?;
     eprintln!(

@@ -43,6 +43,12 @@ pub struct RunArgs {
     /// Pelvis goal in the world, `x,y` metres.
     #[arg(long, default_value = "4.0,2.0")]
     pub goal: String,
+    /// With --task reach: walk up to the target (a pursuit command toward where the pelvis
+    /// stands when the hand, at its walking offset, is there) instead of walking at
+    /// --schedule's first velocity; with --task compose: to where the hand reaches the target
+    /// within 0.4 m of --goal, instead of to --goal itself.
+    #[arg(long)]
+    pub approach: bool,
     /// Network evaluations per control step.
     #[arg(long, default_value_t = 5)]
     pub nfe: usize,
@@ -170,9 +176,15 @@ impl RunArgs {
         let task = match self.task {
             TaskKind::Walk => Task::walk(),
             TaskKind::Joystick => Task { joystick, ..Task::walk() },
+            TaskKind::Reach if self.approach => Task { reach: Some((hand, target()?)), approach: true, ..Task::walk() },
             TaskKind::Reach => Task { joystick: walk_on, reach: Some((hand, target()?)), ..Task::walk() },
             TaskKind::Waypoint => Task { waypoint: Some(goal()?), ..Task::walk() },
-            TaskKind::Compose => Task { waypoint: Some(goal()?), reach: Some((hand, target()?)), ..Task::walk() },
+            TaskKind::Compose => Task {
+                waypoint: Some(goal()?),
+                reach: Some((hand, target()?)),
+                approach: self.approach,
+                ..Task::walk()
+            },
         };
         task.validate()?;
         Ok(task)

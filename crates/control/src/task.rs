@@ -4,7 +4,7 @@
 use crate::adapt::Recent;
 use crate::costs::{Heading, Joystick, Pursuit, Reach, Sum};
 use crate::{ControlError, Layout};
-use flowmimic_geom::CharFrame;
+use flowmimic_geom::{CharFrame, DVec3};
 use flowmimic_sim::skeleton::body;
 use serde::{Deserialize, Serialize};
 
@@ -32,6 +32,16 @@ impl Hand {
             Hand::Right => body::R_HAND,
         }
     }
+
+    /// Where the hand swings in walking, relative to the pelvis in its character frame (x
+    /// forward, y left, m): the median of the shipped `fm` model's unguided walking (8
+    /// environments, 8 s; the right hand 0.11 m ahead, 0.22 m to the right, 0.74-0.85 m high).
+    pub fn walking_offset(self) -> [f64; 2] {
+        match self {
+            Hand::Left => [0.11, 0.22],
+            Hand::Right => [0.11, -0.22],
+        }
+    }
 }
 
 /// A task: any of a joystick schedule, a hand target and a waypoint, each weighted; empty is
@@ -44,6 +54,12 @@ pub struct Task {
     pub reach: Option<(Hand, [f64; 3])>,
     /// A world-frame goal for the pelvis (x, y).
     pub waypoint: Option<[f64; 2]>,
+    /// Walk up to the hand target: a pursuit command toward where the pelvis stands when the
+    /// hand, at its walking offset ([`Hand::walking_offset`]), is at the target, weighted as a
+    /// waypoint; with a waypoint too, toward the nearest such point within
+    /// [`Task::WAYPOINT_RADIUS`] of the waypoint.
+    #[serde(default)]
+    pub approach: bool,
     /// Relative weights of the joystick, heading, reach and waypoint costs.
     pub weights: [f32; 4],
 }
@@ -53,6 +69,10 @@ pub struct Task {
 pub const COMMAND_DIM: usize = 8;
 
 impl Task {
+    /// How far from its waypoint the pelvis may stand to bring the hand to its target, when the
+    /// task asks both (m; the composition's success radius is 0.5 m).
+    pub const WAYPOINT_RADIUS: f64 = 0.4;
+
     pub fn walk() -> Self {
         Self { weights: [1.0; 4], ..Default::default() }
     }
@@ -129,12 +149,22 @@ impl Task {
         if let Some((hand, target)) = self.reach {
             sum = sum.with(wr, Reach::world(layout, hand.body(), target, frame)?);
         }
-        if let Some(goal) = self.waypoint {
-            let to = Pursuit::world(goal, frame)?;
-            sum = sum.with(ww, Joystick::turning(layout, to.speed, 0.0, to.yaw_rate)?);
-            sum = sum.with(ww, Heading::new(layout, to.yaw_rate)?);
+        if let Some(goal) = self.pelvis_goal(frame) {
+            sum = pursue(sum, ww, layout, Pursuit::world(goal, frame)?)?;
         }
         Ok((!sum.terms.is_empty()).then_some(sum))
+    }
+
+    /// Where the task's pursuit command leads the pelvis (world x, y), seen from the current root
+    /// pose `frame`: the waypoint, or with [`Task::approach`] the point where the hand reaches
+    /// its target (within [`Task::WAYPOINT_RADIUS`] of a waypoint); `None` when it asks neither.
+    pub fn pelvis_goal(&self, frame: &CharFrame) -> Option<[f64; 2]> {
+        match (self.reach, self.waypoint) {
+            (Some((hand, target)), waypoint) if self.approach => {
+                Some(stand_point(hand, [target[0], target[1]], waypoint, frame))
+            }
+            (_, waypoint) => waypoint,
+        }
     }
 
     /// How far the humanoid's executed motion is from the joystick command at `time`, in the
@@ -149,6 +179,26 @@ impl Task {
         let ([vx, vy], yaw_rate) = recent.velocity()?;
         Some(((vx - s.vx).powi(2) + (vy - s.vy).powi(2) + (yaw_rate - s.yaw_rate).powi(2)).sqrt())
     }
+}
+
+/// Where the pelvis stands (world x, y) when `hand`, at its walking offset, is over `target`
+/// and the walker faces as it does now; with a waypoint, the nearest such point within
+/// [`Task::WAYPOINT_RADIUS`] of it.
+fn stand_point(hand: Hand, target: [f64; 2], waypoint: Option<[f64; 2]>, frame: &CharFrame) -> [f64; 2] {
+    let [x, y] = hand.walking_offset();
+    let offset = frame.vector_to_world(DVec3::new(x, y, 0.0));
+    let stand = [target[0] - offset.x, target[1] - offset.y];
+    let Some(goal) = waypoint else { return stand };
+    let (dx, dy) = (stand[0] - goal[0], stand[1] - goal[1]);
+    let shrink = (Task::WAYPOINT_RADIUS / dx.hypot(dy)).min(1.0);
+    [goal[0] + dx * shrink, goal[1] + dy * shrink]
+}
+
+/// A pursuit command as guidance: its velocity and its heading, each weighted `weight`.
+fn pursue(sum: Sum, weight: f32, layout: Layout, to: Pursuit) -> Result<Sum, ControlError> {
+    Ok(sum
+        .with(weight, Joystick::turning(layout, to.speed, to.lateral, to.yaw_rate)?)
+        .with(weight, Heading::new(layout, to.yaw_rate)?))
 }
 
 /// World coordinates must be finite and within 10 km.

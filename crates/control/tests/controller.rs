@@ -2,8 +2,9 @@
 //! restarts, pushes and sampler changes behave, with the shipped model; and guidance changes what
 //! the humanoid does; and the one-step model survives kicks in one network call.
 
-use flowmimic_control::{ControlConfig, Controller, JoystickSegment, Task, run};
+use flowmimic_control::{ControlConfig, Controller, Hand, JoystickSegment, Task, run};
 use flowmimic_model::TrajectoryModel;
+use flowmimic_sim::skeleton::body;
 use flowmimic_sim::state::offset;
 use flowmimic_sim::{Humanoid, NUM_DOFS, SimConfig};
 use std::path::Path;
@@ -129,4 +130,43 @@ fn the_shipped_one_step_model_survives_kicks_in_one_network_call() {
     let (one_step, fm) = (mean_survival("onestep"), mean_survival("fm-walk"));
     eprintln!("mean control steps survived at NFE 1 (of 900): one-step model {one_step:.0}, FM {fm:.0}");
     assert!(one_step > 700.0 && fm < 300.0 && one_step > 3.0 * fm, "one-step model {one_step:.0}, FM {fm:.0}");
+}
+
+/// Walking up to a hand target (`Task::approach`) with the shipped FM guidance model brings the
+/// right hand to targets at the walking hand's height 2-2.5 m ahead, to either side, where the
+/// hand's cost alone, at the same scale, leaves it walking past them.
+#[test]
+fn walking_up_to_a_hand_target_brings_the_hand_there() {
+    let h = Humanoid::new(SimConfig::default()).unwrap();
+    let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models/fm"));
+    let model = TrajectoryModel::load(dir).unwrap();
+    let clip = flowmimic_motion::straight_walk(&h).unwrap();
+    let history = model.layout().spec.history;
+    let targets: Vec<[f64; 3]> = [(2.0, -0.3), (2.5, 0.3), (2.2, 0.0), (2.4, -0.5)]
+        .iter()
+        .enumerate()
+        .map(|(e, (x, y))| {
+            let start = &clip.qpos[flowmimic_control::controller::start_frame(clip.len(), history, e)];
+            [start[0] + x, start[1] + y, 0.82]
+        })
+        .collect();
+    let closest = |approach: bool| -> Vec<f64> {
+        let tasks = targets.iter().map(|&t| Task { reach: Some((Hand::Right, t)), approach, ..Task::walk() }).collect();
+        let r = run(&model, &h, &clip, tasks, &ControlConfig::new(2, 30.0, 4.0), "fm", |_| {}).unwrap();
+        (0..4)
+            .map(|e| {
+                (1..=r.survived[e])
+                    .map(|k| {
+                        r.body(e, k, body::R_HAND).iter().zip(&targets[e]).map(|(a, b)| (a - b).powi(2)).sum::<f64>()
+                    })
+                    .fold(f64::INFINITY, f64::min)
+                    .sqrt()
+            })
+            .collect()
+    };
+    let (alone, approach) = (closest(false), closest(true));
+    eprintln!("closest hand-target distance (m): the hand's cost alone {alone:.2?}, walking up {approach:.2?}");
+    let mean = |d: &[f64]| d.iter().sum::<f64>() / d.len() as f64;
+    assert!(mean(&approach) < 0.2, "walking up: {approach:.2?}");
+    assert!(mean(&approach) < mean(&alone), "alone {alone:.2?}, walking up {approach:.2?}");
 }

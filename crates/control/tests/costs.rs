@@ -83,9 +83,14 @@ fn world_targets_are_converted_through_the_root_pose() {
     let frame = CharFrame::new(DVec3::new(2.0, 3.0, 0.9), std::f64::consts::FRAC_PI_2);
     let ahead = Pursuit::world([2.0, 4.0], &frame).unwrap();
     assert!((ahead.speed - 1.0).abs() < 1e-9 && ahead.yaw_rate.abs() < 1e-9, "{ahead:?}");
-    // A point at -x in the world lies on its left: it turns left, at the capped rate, slowly.
+    // A point at -x in the world lies on its left: it turns left, at the capped rate, slowly,
+    // stepping left at the capped sideways speed.
     let left = Pursuit::world([0.0, 3.0], &frame).unwrap();
-    assert!((left.yaw_rate - 0.8).abs() < 1e-9 && (left.speed - 0.2).abs() < 1e-9, "{left:?}");
+    assert!((left.yaw_rate - 1.2).abs() < 1e-9 && (left.speed - 0.2).abs() < 1e-9, "{left:?}");
+    assert!((left.lateral - 0.3).abs() < 1e-9, "{left:?}");
+    // 0.1 m to the right, 2 m ahead: a small right turn and a sidestep of 0.1 m/s.
+    let right = Pursuit::world([2.1, 5.0], &frame).unwrap();
+    assert!(right.yaw_rate < 0.0 && (right.lateral + 0.1).abs() < 1e-9, "{right:?}");
     let reach = Reach::world(layout, body::R_HAND, [2.0, 4.0, 1.0], &frame).unwrap();
     let mut tau = vec![0.0f32; layout.len()];
     tau[layout.root_pos(1)..layout.root_pos(1) + 3].copy_from_slice(&[1.0, 0.0, 1.0]);
@@ -159,4 +164,24 @@ fn guidance_gradients_have_the_length_of_their_error_in_normalised_units() {
         cost.add_grad(&tau, &mut plain);
         assert!(g.iter().zip(&plain).map(|(a, b)| a * b).sum::<f32>() > 0.0);
     }
+}
+
+#[test]
+fn walking_up_to_a_hand_target_leads_the_pelvis_beside_it() {
+    // Standing at (2, 3) facing +y: the right hand swings 0.22 m to the right (+x in the
+    // world) and 0.11 m ahead of the pelvis.
+    let frame = CharFrame::new(DVec3::new(2.0, 3.0, 0.9), std::f64::consts::FRAC_PI_2);
+    let reach = Some((Hand::Right, [4.0, 6.0, 0.8]));
+    let task = Task { reach, approach: true, ..Task::walk() };
+    let [x, y] = task.pelvis_goal(&frame).unwrap();
+    assert!((x - 3.78).abs() < 1e-9 && (y - 5.89).abs() < 1e-9, "{x} {y}");
+    // Without the approach the hand's cost alone pulls: no pursuit.
+    assert_eq!(Task { approach: false, ..task.clone() }.pelvis_goal(&frame), None);
+    // With a waypoint 1 m from that point, the pelvis is led to within 0.4 m of the waypoint,
+    // on the line toward it.
+    let task = Task { waypoint: Some([3.78, 4.89]), ..task };
+    let [x, y] = task.pelvis_goal(&frame).unwrap();
+    assert!((x - 3.78).abs() < 1e-9 && (y - 5.29).abs() < 1e-9, "{x} {y}");
+    // Without the approach the waypoint itself.
+    assert_eq!(Task { approach: false, ..task }.pelvis_goal(&frame), Some([3.78, 4.89]));
 }

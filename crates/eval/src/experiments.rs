@@ -2,7 +2,7 @@
 //! table, notes and the paper's numbers beside ours: what `flowmimic eval ...` runs, callable
 //! from a library ([`Study`] holds what every experiment shares).
 
-use crate::protocols::{self, Bench, Point, SEGMENT_SETTLE};
+use crate::protocols::{self, Bench, Point, ReachSetup, SEGMENT_SETTLE};
 use crate::sweep::{EvalModel, Experiment, Result, Rows, Summary, finish, sweep};
 use crate::{frechet_distance, gaussian};
 use flowmimic_control::{Adaptive, Hand, JoystickSegment, StepReport, Task};
@@ -211,39 +211,42 @@ impl Study<'_> {
     }
 
     /// Random right-hand targets while walking, against guidance scale (paper Fig. 4).
-    pub fn reach(&self, scales: &[f32], nfe: usize) -> Result<()> {
+    pub fn reach(&self, scales: &[f32], nfe: usize, setup: ReachSetup) -> Result<()> {
         let trials = self.trials(20, 4);
+        let (low, high) = setup.heights;
         let exp = Experiment {
             name: "reach",
-            settings: self.settings(""),
+            settings: self.settings(&format!("heights {low}-{high} m; approach {}", setup.approach)),
             title: "Hand reaching against guidance (paper Fig. 4)",
-            columns: &["mean", "rms", "min", "fell"],
+            columns: &["mean", "rms", "min", "reached", "fell"],
             plot: "mean",
             x_label: "guidance scale w",
             y_label: "hand-target distance (m)",
-            header: "| model | H | w | mean distance (m) | RMS (m) | closest (m) | falls |\n|---|---|---|---|---|---|---|",
+            header: "| model | H | w | mean distance (m) | RMS (m) | closest (m) | within 0.15 m | falls |\n|---|---|---|---|---|---|---|---|",
         };
+        let approach = if setup.approach { "walking up to the target (a pursuit command)" } else { "walking on" };
         let notes = format!(
-            "Right-hand targets 1.5-3 m ahead of each trial's start, within 0.5 m to either side, 0.9-1.5 m high; 4 s of guided \
-             walking; distance averaged over the trial (mean, RMS) and the closest approach; NFE {nfe}, {trials} trials. \
-             Paper: RMSE ≈ 1.1 at w = 100."
+            "Right-hand targets 1.5-3 m ahead of each trial's start, within 0.5 m to either side, {low}-{high} m high; 4 s of \
+             guided {approach}; distance averaged over the trial (mean, RMS), the closest approach and the share of trials \
+             whose hand came within 0.15 m; NFE {nfe}, {trials} trials. Paper: RMSE ≈ 1.1 at w = 100."
         );
         self.guided_sweep(
             &exp,
             (scales, nfe, trials, 120),
             |bench, point, report| {
-                let r = protocols::reach(bench, point, trials, report)?;
-                Ok(r.iter().map(|t| vec![t.mean, t.rms, t.min, rate(t.fell)]).collect())
+                let r = protocols::reach(bench, point, setup, trials, report)?;
+                Ok(r.iter().map(|t| vec![t.mean, t.rms, t.min, rate(t.reached()), rate(t.fell)]).collect())
             },
             |m, s| {
                 format!(
-                    "| {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.0}% |",
+                    "| {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.0}% | {:.0}% |",
                     m.label,
                     s.horizon,
                     s.scale,
                     s.mean["mean"],
                     s.mean["rms"],
                     s.mean["min"],
+                    100.0 * s.mean["reached"],
                     100.0 * s.mean["fell"]
                 )
             },
@@ -299,11 +302,13 @@ impl Study<'_> {
     }
 
     /// A waypoint and a hand target at once: success rate against guidance scale.
-    pub fn compose(&self, scales: &[f32], nfe: usize) -> Result<()> {
+    pub fn compose(&self, scales: &[f32], nfe: usize, setup: ReachSetup) -> Result<()> {
+        let height = setup.heights.0;
+        let approach = if setup.approach { ", walking up to the hand target within 0.4 m of the waypoint" } else { "" };
         let trials = self.trials(20, 4);
         let exp = Experiment {
             name: "compose",
-            settings: self.settings(""),
+            settings: self.settings(&format!("target height {height} m; approach {}", setup.approach)),
             title: "Composition: waypoint and reach",
             columns: &["success", "pelvis_min", "hand_min", "fell"],
             plot: "success",
@@ -312,15 +317,15 @@ impl Study<'_> {
             header: "| model | w | success | closest pelvis (m) | closest hand (m) | falls |\n|---|---|---|---|---|---|",
         };
         let notes = format!(
-            "Waypoint 3-4 m ahead and up to 1.5 m aside; right-hand target 0.4 m right of it at 1.2 m; 10 s; success when the \
-             pelvis is within 0.5 m of the waypoint and the hand within 0.15 m of the target at the same step; NFE {nfe}, \
-             {trials} trials."
+            "Waypoint 3-4 m ahead and up to 1.5 m aside; right-hand target 0.4 m right of it at {height} m; 10 s{approach}; success when \
+             the pelvis is within 0.5 m of the waypoint and the hand within 0.15 m of the target at the same step; NFE \
+             {nfe}, {trials} trials."
         );
         self.guided_sweep(
             &exp,
             (scales, nfe, trials, 300),
             |bench, point, report| {
-                let r = protocols::compose(bench, point, trials, report)?;
+                let r = protocols::compose(bench, point, setup, trials, report)?;
                 Ok(r.iter().map(|t| vec![rate(t.success), t.pelvis_min, t.hand_min, rate(t.fell)]).collect())
             },
             |m, s| {

@@ -172,20 +172,47 @@ pub struct ReachTrial {
     pub fell: bool,
 }
 
+impl ReachTrial {
+    /// The hand came within the composition's 0.15 m of the target at some step.
+    pub fn reached(&self) -> bool {
+        self.min <= 0.15
+    }
+}
+
+/// How the reach and composition protocols draw their hand targets' heights, and whether the
+/// walker walks up to the targets.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ReachSetup {
+    /// Target heights are drawn uniformly from `low..=high` (m).
+    pub heights: (f64, f64),
+    /// Walk up to the target ([`Task::approach`]) instead of walking on (reach) or to the
+    /// waypoint (composition) with the hand's cost alone.
+    pub approach: bool,
+}
+
+impl ReachSetup {
+    /// A target height: uniform in `heights` (no draw when the range is one height).
+    fn height(&self, rng: &mut StdRng) -> f64 {
+        let (low, high) = self.heights;
+        if high > low { rng.random_range(low..high) } else { low }
+    }
+}
+
 /// Reach (paper Fig. 4): right-hand targets drawn 1.5-3 m ahead, up to 0.5 m to either side,
-/// 0.9-1.5 m high, of each trial's start; guided reaching while the model walks, 4 s.
+/// at the setup's heights, of each trial's start; guided reaching while the model walks, 4 s.
 pub fn reach(
     bench: &Bench,
     point: Point,
+    setup: ReachSetup,
     trials: usize,
     on_step: impl FnMut(&StepReport),
 ) -> Result<Vec<ReachTrial>, ControlError> {
     let mut rng = StdRng::seed_from_u64(point.seed ^ 0x5EAC);
     let tasks: Vec<Task> = (0..trials)
         .map(|e| {
-            let local = DVec3::new(rng.random_range(1.5..3.0), rng.random_range(-0.5..0.5), rng.random_range(0.9..1.5));
+            let local = DVec3::new(rng.random_range(1.5..3.0), rng.random_range(-0.5..0.5), setup.height(&mut rng));
             let t = bench.start_to_world(e, local);
-            Task { reach: Some((Hand::Right, [t.x, t.y, local.z])), ..Task::walk() }
+            Task { reach: Some((Hand::Right, [t.x, t.y, local.z])), approach: setup.approach, ..Task::walk() }
         })
         .collect();
     let r = bench.run(tasks, point, 4.0, false, on_step)?;
@@ -253,11 +280,13 @@ pub struct ComposeTrial {
 }
 
 /// Composition: walk to a waypoint 3-4 m ahead (up to 1.5 m to either side) and touch a
-/// target 0.4 m to its right at 1.2 m with the right hand, within 10 s. Success when, at some
-/// step, the pelvis is within 0.5 m of the waypoint and the hand within 0.15 m of the target.
+/// target 0.4 m to its right at the setup's heights with the right hand, within 10 s. Success
+/// when, at some step, the pelvis is within 0.5 m of the waypoint and the hand within 0.15 m
+/// of the target.
 pub fn compose(
     bench: &Bench,
     point: Point,
+    setup: ReachSetup,
     trials: usize,
     on_step: impl FnMut(&StepReport),
 ) -> Result<Vec<ComposeTrial>, ControlError> {
@@ -265,9 +294,11 @@ pub fn compose(
     let tasks: Vec<Task> = (0..trials)
         .map(|e| {
             let (x, y) = (rng.random_range(3.0..4.0), rng.random_range(-1.5..1.5));
+            let height = setup.height(&mut rng);
             let goal = bench.start_to_world(e, DVec3::new(x, y, 0.0));
-            let hand = bench.start_to_world(e, DVec3::new(x, y - 0.4, 1.2));
-            Task { waypoint: Some([goal.x, goal.y]), reach: Some((Hand::Right, [hand.x, hand.y, 1.2])), ..Task::walk() }
+            let hand = bench.start_to_world(e, DVec3::new(x, y - 0.4, height));
+            let reach = Some((Hand::Right, [hand.x, hand.y, height]));
+            Task { waypoint: Some([goal.x, goal.y]), reach, approach: setup.approach, ..Task::walk() }
         })
         .collect();
     let r = bench.run(tasks, point, 10.0, false, on_step)?;
