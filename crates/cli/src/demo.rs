@@ -3,7 +3,7 @@
 
 use crate::run::{load_model, start_clip};
 use anyhow::Result;
-use flowmimic_control::{ControlConfig, Hand, JoystickSegment, Rollout, Task};
+use flowmimic_control::{ControlConfig, Hand, Rollout, Task};
 use flowmimic_eval::protocols::{SEGMENT_SETTLE, joystick_trial, yaw_rates};
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::skeleton::body;
@@ -15,7 +15,7 @@ use std::sync::Arc;
 /// Guidance scales of the demo: the joystick's and the reach's (see the README's Results for
 /// the sweeps they come from).
 const JOYSTICK_SCALE: f32 = 30.0;
-const REACH_SCALE: f32 = 10.0;
+const REACH_SCALE: f32 = 30.0;
 
 pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -> Result<()> {
     let model = load_model(model_dir)?;
@@ -64,11 +64,11 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
         );
     }
 
-    // 2. Reach with the right hand while walking: a target 2 m ahead, 0.3 m right, 1.2 m up.
-    let walk = JoystickSegment { seconds: 5.0, vx: 0.8, vy: 0.0, yaw_rate: 0.0 };
+    // 2. Walk up to a target 2 m ahead, 0.3 m right, at a walking hand's height (0.85 m) and
+    // touch it with the right hand (a target above the walking hand is out of reach: README).
     let start = &clip.qpos[flowmimic_control::controller::start_frame(clip.len(), model.layout().spec.history, 0)];
-    let target = [start[0] + 2.0, start[1] - 0.3, 1.2];
-    let task = Task { joystick: vec![walk], reach: Some((Hand::Right, target)), ..Task::walk() };
+    let target = [start[0] + 2.0, start[1] - 0.3, 0.85];
+    let task = Task { reach: Some((Hand::Right, target)), approach: true, ..Task::walk() };
     let r = flowmimic_control::run(&model, humanoid, &clip, vec![task], &control(5.0, REACH_SCALE), &name, |_| {})?;
     r.save(&out.join("reach.rollout.safetensors"))?;
     let distance = |k: usize| {
@@ -77,10 +77,13 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
     };
     let d: Vec<(f64, f64)> = (0..=r.survived[0]).map(|k| (time(k), distance(k))).collect();
     let closest = d.iter().map(|p| p.1).fold(f64::INFINITY, f64::min);
-    Chart::new("reach while walking: right hand to target", "seconds", "metres")
+    Chart::new("walking up to a target: right hand to target", "seconds", "metres")
         .series(Series::line("distance", d))
         .save(&out.join("reach_distance"))?;
-    println!("reach while walking (w {REACH_SCALE}): closest hand-target distance {closest:.2} m, {}", fell(&r));
+    println!(
+        "walking up to a hand target (w {REACH_SCALE}): closest hand-target distance {closest:.2} m, {}",
+        fell(&r)
+    );
     let (model_ms, physics_ms) = r.median_ms();
     println!("per control step (median): model {model_ms:.1} ms, physics {physics_ms:.1} ms");
     eprintln!("wrote rollouts and joystick_velocity/joystick_heading/reach_distance .png/.svg in {}", out.display());

@@ -82,8 +82,8 @@ pub enum EvalCommand {
         /// high; the default reaches above it, where walking-only data has no hand.
         #[arg(long, value_delimiter = ',', default_values_t = [0.9, 1.5])]
         heights: Vec<f64>,
-        /// Walk up to each target (a pursuit command toward where the pelvis stands when the hand
-        /// is there) instead of walking on with the hand's cost alone.
+        /// Walk up to each target (a pursuit command toward a point beside it that brings the
+        /// hand there) instead of walking on with the hand's cost alone.
         #[arg(long)]
         approach: bool,
     },
@@ -109,8 +109,8 @@ pub enum EvalCommand {
         /// Height of the hand target (m).
         #[arg(long, default_value_t = 1.2)]
         height: f64,
-        /// Walk up to where the hand reaches the target, within 0.4 m of the waypoint, instead
-        /// of to the waypoint itself.
+        /// Walk toward a point that brings the hand to the target, within 0.4 m of the waypoint,
+        /// instead of to the waypoint itself.
         #[arg(long)]
         approach: bool,
     },

@@ -43,10 +43,9 @@ pub struct RunArgs {
     /// Pelvis goal in the world, `x,y` metres.
     #[arg(long, default_value = "4.0,2.0")]
     pub goal: String,
-    /// With --task reach: walk up to the target (a pursuit command toward where the pelvis
-    /// stands when the hand, at its walking offset, is there) instead of walking at
-    /// --schedule's first velocity; with --task compose: to where the hand reaches the target
-    /// within 0.4 m of --goal, instead of to --goal itself.
+    /// With --task reach: walk up to the target (a pursuit command toward a point beside it
+    /// that brings the hand there) instead of walking at --schedule's first velocity; with
+    /// --task compose: toward that point within 0.4 m of --goal, instead of to --goal itself.
     #[arg(long)]
     pub approach: bool,
     /// Network evaluations per control step.

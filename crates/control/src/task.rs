@@ -33,13 +33,17 @@ impl Hand {
         }
     }
 
-    /// Where the hand swings in walking, relative to the pelvis in its character frame (x
-    /// forward, y left, m): the median of the shipped `fm` model's unguided walking (8
-    /// environments, 8 s; the right hand 0.11 m ahead, 0.22 m to the right, 0.74-0.85 m high).
-    pub fn walking_offset(self) -> [f64; 2] {
+    /// Where walking up to a target aims the pelvis, relative to the hand's target (x forward,
+    /// y left in the current character frame, m). In walking the right hand swings 0.11 m ahead
+    /// of the pelvis and 0.22 m to its right (medians of the shipped `fm` model's unguided
+    /// walking, 8 environments for 8 s; 0.74-0.85 m high), but the walker closes a gap to the
+    /// side only partly before it passes the target: aiming for 0.08 m instead of 0.22 m brought
+    /// the hand within 15 cm in 55-70% of reach trials instead of 25-50% (README, Results,
+    /// "Walking up to the hand target").
+    pub fn aim_offset(self) -> [f64; 2] {
         match self {
-            Hand::Left => [0.11, 0.22],
-            Hand::Right => [0.11, -0.22],
+            Hand::Left => [0.11, 0.08],
+            Hand::Right => [0.11, -0.08],
         }
     }
 }
@@ -54,10 +58,9 @@ pub struct Task {
     pub reach: Option<(Hand, [f64; 3])>,
     /// A world-frame goal for the pelvis (x, y).
     pub waypoint: Option<[f64; 2]>,
-    /// Walk up to the hand target: a pursuit command toward where the pelvis stands when the
-    /// hand, at its walking offset ([`Hand::walking_offset`]), is at the target, weighted as a
-    /// waypoint; with a waypoint too, toward the nearest such point within
-    /// [`Task::WAYPOINT_RADIUS`] of the waypoint.
+    /// Walk up to the hand target: a pursuit command toward the point [`Hand::aim_offset`] from
+    /// it, where the pelvis passes when the hand meets the target, weighted as a waypoint; with
+    /// a waypoint too, toward the nearest such point within [`Task::WAYPOINT_RADIUS`] of it.
     #[serde(default)]
     pub approach: bool,
     /// Relative weights of the joystick, heading, reach and waypoint costs.
@@ -156,12 +159,12 @@ impl Task {
     }
 
     /// Where the task's pursuit command leads the pelvis (world x, y), seen from the current root
-    /// pose `frame`: the waypoint, or with [`Task::approach`] the point where the hand reaches
+    /// pose `frame`: the waypoint, or with [`Task::approach`] the point that brings the hand to
     /// its target (within [`Task::WAYPOINT_RADIUS`] of a waypoint); `None` when it asks neither.
     pub fn pelvis_goal(&self, frame: &CharFrame) -> Option<[f64; 2]> {
         match (self.reach, self.waypoint) {
             (Some((hand, target)), waypoint) if self.approach => {
-                Some(stand_point(hand, [target[0], target[1]], waypoint, frame))
+                Some(aim_point(hand, [target[0], target[1]], waypoint, frame))
             }
             (_, waypoint) => waypoint,
         }
@@ -181,11 +184,11 @@ impl Task {
     }
 }
 
-/// Where the pelvis stands (world x, y) when `hand`, at its walking offset, is over `target`
-/// and the walker faces as it does now; with a waypoint, the nearest such point within
+/// Where walking up to `target` aims the pelvis (world x, y): [`Hand::aim_offset`] from it,
+/// the walker facing as it does now; with a waypoint, the nearest such point within
 /// [`Task::WAYPOINT_RADIUS`] of it.
-fn stand_point(hand: Hand, target: [f64; 2], waypoint: Option<[f64; 2]>, frame: &CharFrame) -> [f64; 2] {
-    let [x, y] = hand.walking_offset();
+fn aim_point(hand: Hand, target: [f64; 2], waypoint: Option<[f64; 2]>, frame: &CharFrame) -> [f64; 2] {
+    let [x, y] = hand.aim_offset();
     let offset = frame.vector_to_world(DVec3::new(x, y, 0.0));
     let stand = [target[0] - offset.x, target[1] - offset.y];
     let Some(goal) = waypoint else { return stand };

@@ -110,14 +110,17 @@ struct Inputs {
 }
 
 impl Inputs {
-    /// The task in force; a zero joystick asks nothing (the model walks as it likes).
+    /// The task in force; a zero joystick asks nothing (the model walks as it likes, or walks
+    /// up to a hand target when there is one).
     fn task(&self) -> Task {
         let [vx, vy, yaw_rate] = self.drive;
         let held = JoystickSegment { seconds: 1.0, vx, vy, yaw_rate };
+        let idle = self.drive == [0.0; 3];
         Task {
-            joystick: if self.drive == [0.0; 3] { Vec::new() } else { vec![held] },
+            joystick: if idle { Vec::new() } else { vec![held] },
             reach: self.reach,
             waypoint: self.waypoint,
+            approach: idle,
             ..Task::walk()
         }
     }
