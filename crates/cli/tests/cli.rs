@@ -239,6 +239,9 @@ fn bad_input_is_a_clear_error_not_a_crash() {
     let (success, text) = flowmimic(&dir, &["track", "eval", "no-such-run"]);
     assert!(!success && text.contains("no-such-run"), "{text}");
     assert_eq!(text.matches("No such file").count(), 1, "the cause is said once: {text}");
+    let fm = format!("fm={}", concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models/fm"));
+    let (success, text) = flowmimic(&dir, &["eval", "reach", "--model", &fm, "--heights", "1.5,0.9", "--quick"]);
+    assert!(!success && text.contains("--heights") && text.contains("LOW <= HIGH"), "{text}");
     std::fs::remove_dir_all(&dir).ok();
 }
 
