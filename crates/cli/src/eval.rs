@@ -80,7 +80,7 @@ pub enum EvalCommand {
         nfe: usize,
         /// Target heights `LOW,HIGH` (m), drawn uniformly. The walking hand swings 0.74-0.85 m
         /// high; the default reaches above it, where walking-only data has no hand.
-        #[arg(long, value_delimiter = ',', default_values_t = [0.9, 1.5])]
+        #[arg(long, value_delimiter = ',', default_values_t = REACH_HEIGHTS)]
         heights: Vec<f64>,
         /// Walk up to each target (a pursuit command toward a point beside it that brings the
         /// hand there) instead of walking on with the hand's cost alone.
@@ -175,6 +175,9 @@ fn progress_for(total_steps: usize) -> (Progress, impl Fn(&Progress, &StepReport
         }
     })
 }
+
+/// `eval reach`'s default target heights (m): this project's first protocol.
+pub const REACH_HEIGHTS: [f64; 2] = [0.9, 1.5];
 
 /// `--heights LOW,HIGH`: finite, ordered, within the hand targets' 0-2.5 m.
 fn reach_heights(h: &[f64]) -> Result<(f64, f64)> {

@@ -127,7 +127,7 @@ pub fn run(config: &Config, preset: &str, out: &Path, clip_files: &[PathBuf]) ->
                 common: fm_only(),
                 scales: vec![0.0, 3.0, 10.0, 30.0],
                 nfe: 5,
-                heights: vec![0.9, 1.5],
+                heights: eval::REACH_HEIGHTS.to_vec(),
                 approach: false,
             },
             &humanoid,

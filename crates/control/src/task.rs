@@ -153,7 +153,9 @@ impl Task {
             sum = sum.with(wr, Reach::world(layout, hand.body(), target, frame)?);
         }
         if let Some(goal) = self.pelvis_goal(frame) {
-            sum = pursue(sum, ww, layout, Pursuit::world(goal, frame)?)?;
+            let to = Pursuit::world(goal, frame)?;
+            sum = sum.with(ww, Joystick::turning(layout, to.speed, to.lateral, to.yaw_rate)?);
+            sum = sum.with(ww, Heading::new(layout, to.yaw_rate)?);
         }
         Ok((!sum.terms.is_empty()).then_some(sum))
     }
@@ -195,13 +197,6 @@ fn aim_point(hand: Hand, target: [f64; 2], waypoint: Option<[f64; 2]>, frame: &C
     let (dx, dy) = (stand[0] - goal[0], stand[1] - goal[1]);
     let shrink = (Task::WAYPOINT_RADIUS / dx.hypot(dy)).min(1.0);
     [goal[0] + dx * shrink, goal[1] + dy * shrink]
-}
-
-/// A pursuit command as guidance: its velocity and its heading, each weighted `weight`.
-fn pursue(sum: Sum, weight: f32, layout: Layout, to: Pursuit) -> Result<Sum, ControlError> {
-    Ok(sum
-        .with(weight, Joystick::turning(layout, to.speed, to.lateral, to.yaw_rate)?)
-        .with(weight, Heading::new(layout, to.yaw_rate)?))
 }
 
 /// World coordinates must be finite and within 10 km.

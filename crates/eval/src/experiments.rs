@@ -213,10 +213,10 @@ impl Study<'_> {
     /// Random right-hand targets while walking, against guidance scale (paper Fig. 4).
     pub fn reach(&self, scales: &[f32], nfe: usize, setup: ReachSetup) -> Result<()> {
         let trials = self.trials(20, 4);
-        let (low, high) = setup.heights;
+        let heights = setup.heights_label();
         let exp = Experiment {
             name: "reach",
-            settings: self.settings(&format!("heights {low}-{high} m; approach {}", setup.approach)),
+            settings: self.settings(&format!("heights {heights}; approach {}", setup.approach)),
             title: "Hand reaching against guidance (paper Fig. 4)",
             columns: &["mean", "rms", "min", "reached", "fell"],
             plot: "mean",
@@ -226,7 +226,7 @@ impl Study<'_> {
         };
         let approach = if setup.approach { "walking up to the target (a pursuit command)" } else { "walking on" };
         let notes = format!(
-            "Right-hand targets 1.5-3 m ahead of each trial's start, within 0.5 m to either side, {low}-{high} m high; 4 s of \
+            "Right-hand targets 1.5-3 m ahead of each trial's start, within 0.5 m to either side, {heights} high; 4 s of \
              guided {approach}; distance averaged over the trial (mean, RMS), the closest approach and the share of trials \
              whose hand came within 0.15 m; NFE {nfe}, {trials} trials. Paper: RMSE ≈ 1.1 at w = 100."
         );
@@ -303,12 +303,15 @@ impl Study<'_> {
 
     /// A waypoint and a hand target at once: success rate against guidance scale.
     pub fn compose(&self, scales: &[f32], nfe: usize, setup: ReachSetup) -> Result<()> {
-        let height = setup.heights.0;
-        let approach = if setup.approach { ", walking up to the hand target within 0.4 m of the waypoint" } else { "" };
+        let height = setup.heights_label();
+        let approach = match setup.approach {
+            true => format!(", walking up to the hand target within {} m of the waypoint", Task::WAYPOINT_RADIUS),
+            false => String::new(),
+        };
         let trials = self.trials(20, 4);
         let exp = Experiment {
             name: "compose",
-            settings: self.settings(&format!("target height {height} m; approach {}", setup.approach)),
+            settings: self.settings(&format!("target height {height}; approach {}", setup.approach)),
             title: "Composition: waypoint and reach",
             columns: &["success", "pelvis_min", "hand_min", "fell"],
             plot: "success",
@@ -317,7 +320,7 @@ impl Study<'_> {
             header: "| model | w | success | closest pelvis (m) | closest hand (m) | falls |\n|---|---|---|---|---|---|",
         };
         let notes = format!(
-            "Waypoint 3-4 m ahead and up to 1.5 m aside; right-hand target 0.4 m right of it at {height} m; 10 s{approach}; success when \
+            "Waypoint 3-4 m ahead and up to 1.5 m aside; right-hand target 0.4 m right of it at {height}; 10 s{approach}; success when \
              the pelvis is within 0.5 m of the waypoint and the hand within 0.15 m of the target at the same step; NFE \
              {nfe}, {trials} trials."
         );

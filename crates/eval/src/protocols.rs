@@ -183,7 +183,7 @@ impl ReachTrial {
 /// walker walks up to the targets.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ReachSetup {
-    /// Target heights are drawn uniformly from `low..=high` (m).
+    /// Target heights are drawn uniformly from `low..high` (m); one height when they are equal.
     pub heights: (f64, f64),
     /// Walk up to the target ([`Task::approach`]) instead of walking on (reach) or to the
     /// waypoint (composition) with the hand's cost alone.
@@ -195,6 +195,14 @@ impl ReachSetup {
     fn height(&self, rng: &mut StdRng) -> f64 {
         let (low, high) = self.heights;
         if high > low { rng.random_range(low..high) } else { low }
+    }
+
+    /// The heights for a report: `0.85 m` or `0.7-1 m`.
+    pub fn heights_label(&self) -> String {
+        match self.heights {
+            (low, high) if high > low => format!("{low}-{high} m"),
+            (low, _) => format!("{low} m"),
+        }
     }
 }
 
