@@ -24,6 +24,13 @@ pub enum DatasetCommand {
         #[arg(long, default_value_t = 16)]
         horizon: usize,
     },
+    /// Add the left-right mirror image of every collected clip's rollouts to the dataset, as
+    /// `<clip>-mirrored`: a walk that turns left becomes one that turns right, so the data turns
+    /// both ways alike. The collected shards are kept; clips mirrored before are skipped.
+    Mirror {
+        /// The dataset directory.
+        dir: PathBuf,
+    },
     /// Hours per clip and sigma, fall rates, feature ranges, and coverage plots (PNG/SVG).
     Inspect {
         /// The dataset directory.
@@ -106,6 +113,7 @@ fn collect_clip(
         sigmas: cfg.noise.clone(),
         falls: stats.falls.clone(),
         sha256: String::new(),
+        mirror_of: None,
     };
     dataset.add(info, &shard)?;
     println!("{} steps in {:.1} s: {:.0} steps/s", stats.steps, stats.seconds, stats.steps as f64 / stats.seconds);
@@ -122,6 +130,11 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
             let spec = WindowSpec { history, horizon };
             let stats = Stats::of_dataset(&Dataset::open(&dir)?, spec)?;
             println!("{} windows; wrote {}", stats.windows, dir.join(Stats::file_name(spec)).display());
+            return Ok(());
+        }
+        DatasetCommand::Mirror { dir } => {
+            let added = Dataset::open(&dir)?.add_mirror_images()?;
+            println!("added {} mirrored clips to {}: {}", added.len(), dir.display(), added.join(" "));
             return Ok(());
         }
         DatasetCommand::Inspect { dir } => dir,

@@ -47,6 +47,9 @@ fn stages_connect_through_their_files() {
     ok(&dir, &["motion", "generate", "--duration", "1.0", "--name", "v", "--speed", "0.8", "-o", "clips"]);
     let paired = ok(&dir, &["collect", "run", "--clip", "clips/v.clip.safetensors", "-o", "data-v"]);
     assert!(paired.contains("collecting v ") && paired.contains("holds 1 clips"), "{paired}");
+    let mirror = ok(&dir, &["dataset", "mirror", "data-v"]);
+    assert!(mirror.contains("added 1 mirrored clips") && dir.join("data-v/v-mirrored.rollouts.safetensors").exists());
+    assert!(ok(&dir, &["dataset", "mirror", "data-v"]).contains("added 0 mirrored clips"), "mirrored once");
     let (success, text) = flowmimic(&dir, &["collect", "run", "warm", "--clip", "clips/v.clip.safetensors"]);
     assert!(!success && text.contains("--clip pairs clips with one expert run"), "{text}");
     let (success, text) = flowmimic(&dir, &["collect", "run", "--clip", "clips/missing.clip.safetensors"]);

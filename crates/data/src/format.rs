@@ -16,11 +16,13 @@
 //! | `frame`         | U32   | `[S]`      | reference frame the expert was tracking                      |
 //!
 //! `manifest.json` lists the dimensions, feature and body names, the control rate and every
-//! shard with its clip, expert, seed, step count and SHA-256. Adding a clip writes one shard and
-//! rewrites only the manifest (atomically).
+//! shard with its clip, expert, seed, step count and SHA-256 (and `mirror_of`, the source's
+//! SHA-256, for a shard that is another's left-right mirror image). Adding a clip writes one shard and rewrites only the
+//! manifest (atomically).
 
 use crate::DataError;
 use flowmimic_io::le;
+use flowmimic_sim::Mirror;
 use flowmimic_sim::skeleton::{BODY_NAMES, hinge_names};
 use flowmimic_sim::state::state_feature_names;
 use flowmimic_sim::{CONTROL_HZ, NUM_DOFS, STATE_DIM};
@@ -46,6 +48,10 @@ pub struct ShardInfo {
     /// (sigma, episodes, falls) of the collection.
     pub falls: Vec<(f32, usize, usize)>,
     pub sha256: String,
+    /// For a mirror image ([`Dataset::add_mirror_images`]), the SHA-256 of the shard it mirrors;
+    /// `None` for collected rollouts.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mirror_of: Option<String>,
 }
 
 /// `manifest.json`.
@@ -116,6 +122,21 @@ impl Shard {
         self.sigma.extend(other.sigma);
         self.rollout.extend(other.rollout);
         self.frame.extend(other.frame);
+    }
+
+    /// The mirror image of every step ([`Mirror`]): states and actions mirrored left to right,
+    /// the world pose's y and heading negated.
+    pub fn mirror_image(&self) -> Shard {
+        let mut image = self.clone();
+        Mirror::state().apply_rows(&mut image.state);
+        let actions = Mirror::action();
+        actions.apply_rows(&mut image.action);
+        actions.apply_rows(&mut image.noisy_action);
+        for pose in image.root_pose.chunks_mut(3) {
+            pose[1] = -pose[1];
+            pose[2] = -pose[2];
+        }
+        image
     }
 
     fn bytes(&self) -> Result<Vec<u8>, DataError> {
@@ -249,6 +270,28 @@ impl Dataset {
         let json = serde_json::to_string_pretty(&self.manifest).expect("json");
         flowmimic_io::write_atomic(&self.dir.join(MANIFEST), json.as_bytes())?;
         Ok(())
+    }
+
+    /// Adds the mirror image ([`Shard::mirror_image`]) of every collected shard that has none
+    /// yet, as the clip `<clip>-mirrored`, and returns the clips added. The collected shards
+    /// stay as they are; a second call adds nothing, and a clip collected again since is
+    /// mirrored again.
+    pub fn add_mirror_images(&mut self) -> Result<Vec<String>, DataError> {
+        let shards = &self.manifest.shards;
+        let missing: Vec<ShardInfo> = shards
+            .iter()
+            .filter(|s| s.mirror_of.is_none() && !shards.iter().any(|m| m.mirror_of.as_ref() == Some(&s.sha256)))
+            .cloned()
+            .collect();
+        let mut added = Vec::new();
+        for info in missing {
+            let image = self.load(&info)?.mirror_image();
+            let clip = format!("{}-mirrored", info.clip);
+            let (file, mirror_of) = (format!("{clip}.rollouts.safetensors"), Some(info.sha256.clone()));
+            self.add(ShardInfo { clip: clip.clone(), file, mirror_of, ..info }, &image)?;
+            added.push(clip);
+        }
+        Ok(added)
     }
 
     /// Reads a shard, verifying its checksum and dimensions.

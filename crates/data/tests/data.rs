@@ -3,7 +3,7 @@
 use flowmimic_data::*;
 use flowmimic_geom::heading;
 use flowmimic_motion::{GaitParams, generate};
-use flowmimic_sim::{BodyKinematics, Humanoid, NUM_DOFS, STATE_DIM, SimConfig};
+use flowmimic_sim::{BodyKinematics, Humanoid, Mirror, NUM_DOFS, STATE_DIM, SimConfig};
 use flowmimic_track::TrackConfig;
 use flowmimic_track::ppo::Policy;
 use flowmimic_track::task::OBS_DIM;
@@ -133,6 +133,7 @@ fn collection_writes_checked_shards_and_appends_without_rewriting() {
             sigmas: collect_cfg.noise.clone(),
             falls: stats.falls.clone(),
             sha256: String::new(),
+            mirror_of: None,
         };
         dataset.add(info, &shard).unwrap();
         if k == 0 {
@@ -178,5 +179,61 @@ fn collection_writes_checked_shards_and_appends_without_rewriting() {
     std::fs::write(dir.join("manifest.json"), text.replace("\"state_dim\": 165", "\"state_dim\": 160")).unwrap();
     let err = Dataset::open(&dir).err().unwrap().to_string();
     assert!(err.contains("manifest.json") && err.contains("160"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A shard's manifest entry for tests.
+fn entry(clip: &str) -> ShardInfo {
+    ShardInfo {
+        file: format!("{clip}.rollouts.safetensors"),
+        clip: clip.into(),
+        expert: "none".into(),
+        seed: 0,
+        steps: 0,
+        rollouts: 2,
+        sigmas: vec![(0.1, 1)],
+        falls: vec![],
+        sha256: String::new(),
+        mirror_of: None,
+    }
+}
+
+#[test]
+fn a_mirrored_shard_holds_the_mirror_images_of_the_windows_and_is_added_once() {
+    let (shard, _) = raw_rollout(30);
+    let image = shard.mirror_image();
+    let spec = WindowSpec { history: 4, horizon: 6 };
+    let (states, actions) = (Mirror::state(), Mirror::action());
+    for &t in &window_starts(&shard, spec) {
+        let (w, m) = (window(&shard, spec, t), window(&image, spec, t));
+        let mut expected = w.states.clone();
+        states.apply_rows(&mut expected);
+        assert!(expected.iter().zip(&m.states).all(|(a, b)| (a - b).abs() < 1e-4), "window at {t}");
+        let mut expected = w.actions.clone();
+        actions.apply_rows(&mut expected);
+        assert_eq!(expected, m.actions);
+    }
+    // The spinning humanoid turns left; its image turns right as fast.
+    let turn = |s: &Shard| s.root_pose[3 * 10 + 2] - s.root_pose[2];
+    assert!(turn(&shard) > 0.5 && (turn(&image) + turn(&shard)).abs() < 1e-5, "{} {}", turn(&shard), turn(&image));
+
+    let dir = tmp("mirror");
+    let mut dataset = Dataset::open_or_create(&dir).unwrap();
+    dataset.add(entry("a"), &shard).unwrap();
+    let collected = std::fs::read(dir.join("a.rollouts.safetensors")).unwrap();
+    assert_eq!(dataset.add_mirror_images().unwrap(), ["a-mirrored"]);
+    assert!(dataset.add_mirror_images().unwrap().is_empty(), "a second call adds nothing");
+    let reopened = Dataset::open(&dir).unwrap();
+    let all = reopened.load_all().unwrap();
+    assert_eq!(all.len(), 2);
+    assert_eq!(all[1].0.mirror_of.as_deref(), Some(all[0].0.sha256.as_str()));
+    assert_eq!(all[1].1, image);
+    assert_eq!(std::fs::read(dir.join("a.rollouts.safetensors")).unwrap(), collected, "the collected shard is kept");
+    // A clip collected again is mirrored again.
+    let mut shorter = shard.clone();
+    shorter.truncate(20);
+    dataset.add(entry("a"), &shorter).unwrap();
+    assert_eq!(dataset.add_mirror_images().unwrap(), ["a-mirrored"]);
+    assert_eq!(Dataset::open(&dir).unwrap().load_all().unwrap()[1].1, shorter.mirror_image());
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -336,3 +336,46 @@ fn soles_touch_the_ground_when_standing_and_lift_with_the_body() {
     let [l, r] = env.sole_heights();
     assert!((l - r).abs() < 1e-9 && l > 0.9, "{l} {r}");
 }
+
+/// A pose's mirror image: the root flips y and its rotation flips about x and z (quaternion
+/// `w, x, y, z`; angular velocity), the hinges as the actions do.
+fn mirrored(q: &[f64], v: &[f64]) -> (Vec<f64>, Vec<f64>) {
+    let hinges = Mirror::action();
+    let (mut mq, mut mv) = (q.to_vec(), v.to_vec());
+    for i in [1, 4, 6] {
+        mq[i] = -q[i];
+    }
+    for i in [1, 3, 5] {
+        mv[i] = -v[i];
+    }
+    mq[7..].copy_from_slice(&hinges.apply(&q[7..]));
+    mv[6..].copy_from_slice(&hinges.apply(&v[6..]));
+    (mq, mv)
+}
+
+fn largest_difference(a: &[f32], b: &[f32]) -> f32 {
+    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+}
+
+#[test]
+fn the_mirror_image_of_a_motion_is_the_motion_of_the_mirrored_actions() {
+    let h = humanoid();
+    let (states, actions) = (Mirror::state(), Mirror::action());
+    let mut env = moving_env(&h);
+    let (q, v) = mirrored(env.qpos(), env.qvel());
+    let mut image = h.env();
+    image.reset(&q, &v).unwrap();
+    // The mirrored pose's state is the state's mirror image; mirroring twice is the identity.
+    let state = env.state();
+    assert!(largest_difference(&states.apply(&state), &image.state()) < 1e-5);
+    assert_eq!(states.apply(&states.apply(&state)), state);
+    assert_ne!(states.apply(&state), state, "a moving, tilted pose is not its own mirror image");
+    // Two seconds driven by mirrored actions, falling and landing included, stay mirror images.
+    for s in 0..60 {
+        env.step(&action(s, 0.5)).unwrap();
+        image.step(&actions.apply(&action(s, 0.5))).unwrap();
+    }
+    let difference = largest_difference(&states.apply(&env.state()), &image.state());
+    assert!(difference < 1e-3, "mirror images {difference} apart after 2 s");
+    assert!(largest_difference(&env.state(), &image.state()) > 0.1, "the two motions differ");
+}
