@@ -85,6 +85,15 @@ pub enum MotionCommand {
         #[arg(short, long, default_value = "runs/corpus")]
         out: PathBuf,
     },
+    /// Write the left-right mirror image of clip files as `<out>/<name>-mirrored.clip.safetensors`
+    /// (a walk that turns left turns right), e.g. to track or collect both sides of a capture.
+    Mirror {
+        #[arg(required = true)]
+        files: Vec<PathBuf>,
+        /// Output directory.
+        #[arg(short, long, default_value = "runs/clips")]
+        out: PathBuf,
+    },
     /// Print the quality table of clip files and their coverage: how much walks backward, turns
     /// and sidesteps, with histograms (coverage_*.png/svg beside the first file).
     Inspect {
@@ -259,6 +268,15 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
             clips.iter().for_each(|c| row(humanoid, c));
             print_coverage(&Coverage::of(clips.iter().flat_map(|c| c.walking_velocities()).collect()), &out)?;
             println!("{} clips written to {}", clips.len(), out.display());
+        }
+        MotionCommand::Mirror { files, out } => {
+            header();
+            for file in &files {
+                let clip = Clip::load(humanoid, file)?.mirror_image(humanoid)?;
+                clip.save(&clip_path(&out, &clip.name))?;
+                row(humanoid, &clip);
+            }
+            println!("written to {}", out.display());
         }
         MotionCommand::Inspect { files } => {
             header();

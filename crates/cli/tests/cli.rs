@@ -47,6 +47,8 @@ fn stages_connect_through_their_files() {
     ok(&dir, &["motion", "generate", "--duration", "1.0", "--name", "v", "--speed", "0.8", "-o", "clips"]);
     let paired = ok(&dir, &["collect", "run", "--clip", "clips/v.clip.safetensors", "-o", "data-v"]);
     assert!(paired.contains("collecting v ") && paired.contains("holds 1 clips"), "{paired}");
+    ok(&dir, &["motion", "mirror", "clips/v.clip.safetensors", "-o", "clips"]);
+    assert!(dir.join("clips/v-mirrored.clip.safetensors").exists());
     let mirror = ok(&dir, &["dataset", "mirror", "data-v"]);
     assert!(mirror.contains("added 1 mirrored clips") && dir.join("data-v/v-mirrored.rollouts.safetensors").exists());
     assert!(ok(&dir, &["dataset", "mirror", "data-v"]).contains("added 0 mirrored clips"), "mirrored once");

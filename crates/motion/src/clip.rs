@@ -27,7 +27,7 @@ use crate::retarget::quat_of;
 use flowmimic_geom::{DQuat, DVec3, rotvec, yaw_quat};
 use flowmimic_io::le;
 use flowmimic_sim::skeleton::{BODY_NAMES, NUM_BODIES, body, hinge_names};
-use flowmimic_sim::{BodyKinematics, CONTROL_HZ, Humanoid};
+use flowmimic_sim::{BodyKinematics, CONTROL_HZ, Humanoid, Mirror};
 use safetensors::{Dtype, SafeTensors, tensor::TensorView};
 use std::collections::HashMap;
 use std::path::Path;
@@ -174,6 +174,14 @@ impl Clip {
         clip.qvel[0] = self.qvel[0].clone();
         clip.derive_bodies(humanoid)?;
         Ok(clip)
+    }
+
+    /// The clip's left-right mirror image ([`Mirror`]), named `<name>-mirrored`: a walk that
+    /// turns left becomes one that turns right at the same rate.
+    pub fn mirror_image(&self, humanoid: &Arc<Humanoid>) -> Result<Self, MotionError> {
+        let qpos = self.qpos.iter().map(|q| Mirror::qpos(q)).collect();
+        let source = format!("mirror image of {}", self.source);
+        Self::from_qpos(humanoid, &format!("{}-mirrored", self.name), &source, self.cyclic, qpos)
     }
 
     /// The walking each frame carries out (see [`crate::coverage::walking_velocities`]).

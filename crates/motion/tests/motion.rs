@@ -395,3 +395,25 @@ fn the_corpus_holds_the_wandering_walks_the_backward_walk_and_the_walking_captur
     let generated = corpus(&h, &CorpusParams { walks: 1, duration: 6.0, mocap: None }).unwrap();
     assert_eq!(generated.clips.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(), ["wander_1", "walk_back"]);
 }
+
+#[test]
+fn a_mirrored_walk_turns_and_steps_the_other_way_with_the_other_foot() {
+    let h = humanoid();
+    let p = GaitParams { turn_rate: 0.4, lateral: 0.2, duration: 3.0, ..Default::default() };
+    let walk = generate(&h, "g", &p).unwrap().0;
+    let image = walk.mirror_image(&h).unwrap();
+    assert_eq!(image.name, "g-mirrored");
+    // Per frame, the walking velocities mirror: forward the same, sideways and turning negated.
+    for (a, b) in walk.walking_velocities().iter().zip(image.walking_velocities()) {
+        assert!((a[0] - b[0]).abs() < 1e-6 && (a[1] + b[1]).abs() < 1e-6 && (a[2] + b[2]).abs() < 1e-6, "{a:?} {b:?}");
+    }
+    // The left foot of the image is where the right foot was, across the sagittal plane.
+    for (k, m) in walk.bodies.iter().zip(&image.bodies) {
+        let (l, r) = (m.pos[body::L_ANKLE], k.pos[body::R_ANKLE]);
+        assert!((l - DVec3::new(r.x, -r.y, r.z)).length() < 1e-9);
+    }
+    let q = image.quality(&h);
+    assert!(q.skating < 0.08 && q.penetration_max < 0.01, "{q:?}");
+    let twice = image.mirror_image(&h).unwrap();
+    assert!(twice.qpos.iter().flatten().zip(walk.qpos.iter().flatten()).all(|(a, b)| a == b));
+}

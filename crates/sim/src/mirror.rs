@@ -50,6 +50,26 @@ impl Mirror {
         self.source.iter().zip(&self.flip).map(|(&s, &f)| if f { -x[s] } else { x[s] }).collect()
     }
 
+    /// The mirror image of a pose: `qpos` (root position, root quaternion `w, x, y, z`, 69
+    /// hinge angles).
+    pub fn qpos(qpos: &[f64]) -> Vec<f64> {
+        Self::root_and_hinges(qpos, [1, 4, 6], 7)
+    }
+
+    /// The mirror image of a pose's velocity: `qvel` (root linear and angular velocity, 69
+    /// hinge rates).
+    pub fn qvel(qvel: &[f64]) -> Vec<f64> {
+        Self::root_and_hinges(qvel, [1, 3, 5], 6)
+    }
+
+    /// The root's `flipped` entries negated, the hinges from `hinges` on as the actions are.
+    fn root_and_hinges(x: &[f64], flipped: [usize; 3], hinges: usize) -> Vec<f64> {
+        let mut image = x.to_vec();
+        flipped.iter().for_each(|&i| image[i] = -x[i]);
+        image[hinges..].copy_from_slice(&Self::action().apply(&x[hinges..]));
+        image
+    }
+
     /// The image of every row of `rows` (rows of this layout, one after another), in place.
     pub fn apply_rows<T: Copy + Neg<Output = T>>(&self, rows: &mut [T]) {
         for row in rows.chunks_mut(self.source.len()) {

@@ -337,22 +337,6 @@ fn soles_touch_the_ground_when_standing_and_lift_with_the_body() {
     assert!((l - r).abs() < 1e-9 && l > 0.9, "{l} {r}");
 }
 
-/// A pose's mirror image: the root flips y and its rotation flips about x and z (quaternion
-/// `w, x, y, z`; angular velocity), the hinges as the actions do.
-fn mirrored(q: &[f64], v: &[f64]) -> (Vec<f64>, Vec<f64>) {
-    let hinges = Mirror::action();
-    let (mut mq, mut mv) = (q.to_vec(), v.to_vec());
-    for i in [1, 4, 6] {
-        mq[i] = -q[i];
-    }
-    for i in [1, 3, 5] {
-        mv[i] = -v[i];
-    }
-    mq[7..].copy_from_slice(&hinges.apply(&q[7..]));
-    mv[6..].copy_from_slice(&hinges.apply(&v[6..]));
-    (mq, mv)
-}
-
 fn largest_difference(a: &[f32], b: &[f32]) -> f32 {
     a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
 }
@@ -362,7 +346,7 @@ fn the_mirror_image_of_a_motion_is_the_motion_of_the_mirrored_actions() {
     let h = humanoid();
     let (states, actions) = (Mirror::state(), Mirror::action());
     let mut env = moving_env(&h);
-    let (q, v) = mirrored(env.qpos(), env.qvel());
+    let (q, v) = (Mirror::qpos(env.qpos()), Mirror::qvel(env.qvel()));
     let mut image = h.env();
     image.reset(&q, &v).unwrap();
     // The mirrored pose's state is the state's mirror image; mirroring twice is the identity.
