@@ -225,7 +225,6 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         gradient: common.guidance.gradient,
         guidance_steps: common.guidance.guidance_interval,
         adaptive: common.guidance.adaptive,
-        symmetric: common.guidance.symmetric,
         progress: &with_progress,
     };
     lib(match &cmd {

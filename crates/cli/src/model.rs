@@ -162,7 +162,7 @@ pub fn bench(sizes: &[(&str, ModelConfig)], repeats: usize) -> Result<()> {
                     let mut times: Vec<f64> = (0..repeats.max(1) + 1)
                         .map(|_| {
                             let t = Instant::now();
-                            std::hint::black_box(model.sample(&cond, batch, nfe, None, None, &mut rng));
+                            std::hint::black_box(model.sample(&cond, batch, nfe, None, &mut rng));
                             t.elapsed().as_secs_f64()
                         })
                         .skip(1)

@@ -95,11 +95,6 @@ pub struct GuidanceArgs {
     /// and w; other tasks keep w (default: the fixed scale w throughout).
     #[arg(long, value_parser = parse_adaptive)]
     pub adaptive: Option<Adaptive>,
-    /// Sample from the network averaged with its mirror image, both in one batch (twice the
-    /// batch): the walk no longer turns one way of its own accord (the shipped models, left
-    /// alone, circle left).
-    #[arg(long)]
-    pub symmetric: bool,
 }
 
 impl GuidanceArgs {
@@ -109,7 +104,6 @@ impl GuidanceArgs {
             gradient: self.gradient,
             guidance_steps: self.guidance_interval,
             adaptive: self.adaptive,
-            symmetric: self.symmetric,
             ..control
         }
     }

@@ -8,7 +8,7 @@ use crate::rollout::{Rollout, RolloutInfo};
 use crate::task::Task;
 use crate::{ControlError, Layout};
 use flowmimic_geom::CharFrame;
-use flowmimic_model::{Gradient, SampleMirror, TaskGuidance, TrajectoryModel};
+use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_sim::{CONTROL_HZ, Env, Humanoid, NUM_DOFS};
 use rand::rngs::StdRng;
@@ -33,10 +33,6 @@ pub struct ControlConfig {
     /// ([`crate::adapt`]); `None`: `w` throughout.
     #[serde(default)]
     pub adaptive: Option<Adaptive>,
-    /// Sample from the network averaged with its mirror image (flowmimic_model's `mirror`),
-    /// at twice the batch: the walk turns neither way of its own accord.
-    #[serde(default)]
-    pub symmetric: bool,
     /// Solver steps [start, end) that apply guidance; default: all but the last quarter (the
     /// paper guides 15 of 20).
     pub guidance_steps: Option<(usize, usize)>,
@@ -63,7 +59,6 @@ impl ControlConfig {
             guidance_scale,
             gradient: Gradient::ThroughNetwork,
             adaptive: None,
-            symmetric: false,
             guidance_steps: None,
             seconds,
             execute: 1,
@@ -124,8 +119,6 @@ pub fn start_frame(clip_len: usize, history: usize, e: usize) -> usize {
 pub struct Controller<'m> {
     model: &'m TrajectoryModel,
     config: ControlConfig,
-    /// The model's mirror, made when the config first asks for symmetric sampling.
-    mirror: Option<SampleMirror>,
     envs: Vec<Env>,
     histories: Vec<History>,
     /// Each environment's last half second of pelvis poses, for adaptive guidance.
@@ -177,6 +170,7 @@ impl<'m> Controller<'m> {
         envs: usize,
         config: &ControlConfig,
     ) -> Result<Self, ControlError> {
+        check_sampler(config)?;
         let n_hist = model.layout().spec.history;
         if clip.len() < n_hist + 2 {
             return Err(ControlError::Start(format!("clip '{}' is shorter than the history", clip.name)));
@@ -184,7 +178,6 @@ impl<'m> Controller<'m> {
         let mut this = Self {
             model,
             config: config.clone(),
-            mirror: None,
             envs: (0..envs).map(|_| humanoid.env()).collect(),
             histories: (0..envs).map(|_| History::new(model.layout().spec)).collect(),
             recent: vec![Recent::default(); envs],
@@ -193,7 +186,6 @@ impl<'m> Controller<'m> {
             rng: StdRng::seed_from_u64(config.seed),
             step: 0,
         };
-        this.set_config(config.clone())?;
         for e in 0..envs {
             this.restart(e, clip, start_frame(clip.len(), n_hist, e))?;
         }
@@ -221,9 +213,6 @@ impl<'m> Controller<'m> {
     /// Changes the sampler (NFE, scale, gradient, interval) from the next step on.
     pub fn set_config(&mut self, config: ControlConfig) -> Result<(), ControlError> {
         check_sampler(&config)?;
-        if config.symmetric && self.mirror.is_none() {
-            self.mirror = Some(self.model.mirror().map_err(|e| ControlError::Sampler(e.to_string()))?);
-        }
         self.config = config;
         Ok(())
     }
@@ -289,8 +278,7 @@ impl<'m> Controller<'m> {
                 steps: g0..g1,
                 gradient: self.config.gradient,
             });
-            let mirror = self.mirror.as_ref().filter(|_| self.config.symmetric);
-            let futures = model.sample(&cond, replan.len(), self.config.nfe, guidance.as_ref(), mirror, &mut self.rng);
+            let futures = model.sample(&cond, replan.len(), self.config.nfe, guidance.as_ref(), &mut self.rng);
             let len = traj.len();
             for (i, &e) in replan.iter().enumerate() {
                 self.plans[e] = Some((futures[i * len..(i + 1) * len].to_vec(), 0));
@@ -387,7 +375,6 @@ pub fn run(
             guidance_steps: config.guidance_steps(),
             gradient: config.gradient,
             adaptive: config.adaptive,
-            symmetric: config.symmetric,
             tasks: tasks.clone(),
             seed: config.seed,
             start: format!("clip '{}'", clip.name),

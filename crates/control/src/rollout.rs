@@ -44,9 +44,6 @@ pub struct RolloutInfo {
     /// Adaptive guidance's reference error (`None`: the fixed scale).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub adaptive: Option<crate::Adaptive>,
-    /// Sampled from the network averaged with its mirror image.
-    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
-    pub symmetric: bool,
     pub tasks: Vec<Task>,
     pub seed: u64,
     pub start: String,

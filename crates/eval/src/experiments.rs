@@ -40,8 +40,6 @@ pub struct Study<'a> {
     pub guidance_steps: Option<(usize, usize)>,
     /// Adaptive guidance's reference error (`None`: the fixed scale).
     pub adaptive: Option<Adaptive>,
-    /// Mirror-symmetric sampling.
-    pub symmetric: bool,
     pub progress: &'a WithProgress<'a>,
 }
 
@@ -56,9 +54,8 @@ impl Study<'_> {
     }
 
     fn point(&self, nfe: usize, scale: f32) -> Point {
-        let (guidance_steps, adaptive, symmetric) = (self.guidance_steps, self.adaptive, self.symmetric);
-        let (execute, seed, gradient) = (self.execute, self.seed, self.gradient);
-        Point { nfe, scale, execute, seed, gradient, guidance_steps, adaptive, symmetric }
+        let (guidance_steps, adaptive) = (self.guidance_steps, self.adaptive);
+        Point { nfe, scale, execute: self.execute, seed: self.seed, gradient: self.gradient, guidance_steps, adaptive }
     }
 
     fn by_nfe(&self, nfe: &[usize]) -> Vec<Point> {
@@ -473,16 +470,7 @@ impl Study<'_> {
                 for gradient in [Gradient::ThroughNetwork, Gradient::CostOnly] {
                     for &scale in scales {
                         let guidance_steps = self.guidance_steps;
-                        let point = Point {
-                            nfe,
-                            scale,
-                            execute: 1,
-                            seed: 0,
-                            gradient,
-                            guidance_steps,
-                            adaptive: None,
-                            symmetric: false,
-                        };
+                        let point = Point { nfe, scale, execute: 1, seed: 0, gradient, guidance_steps, adaptive: None };
                         let e = protocols::guidance_effect(&m.bench(self.humanoid, self.clip), task, point, samples)?;
                         let g = serde_json::to_string(&gradient)?;
                         println!(

@@ -38,9 +38,6 @@ pub struct Point {
     /// Adaptive guidance's reference error; `None`: the fixed scale.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub adaptive: Option<Adaptive>,
-    /// Mirror-symmetric sampling.
-    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
-    pub symmetric: bool,
 }
 
 impl Bench<'_> {
@@ -57,7 +54,6 @@ impl Bench<'_> {
             guidance_scale: point.scale,
             gradient: point.gradient,
             adaptive: point.adaptive,
-            symmetric: point.symmetric,
             guidance_steps: point.guidance_steps,
             seconds,
             execute: point.execute,
@@ -419,8 +415,8 @@ pub fn guidance_effect(
     let grad = |x: &[f32], n: usize| flowmimic_control::costs::batch_guidance_grad(&costs, std, x, n);
     let nfe = point.nfe;
     let guidance = TaskGuidance { weight: point.scale, grad: &grad, steps: steps.0..steps.1, gradient: point.gradient };
-    let unguided = bench.model.sample(&cond, samples, nfe, None, None, &mut StdRng::seed_from_u64(point.seed));
-    let guided = bench.model.sample(&cond, samples, nfe, Some(&guidance), None, &mut StdRng::seed_from_u64(point.seed));
+    let unguided = bench.model.sample(&cond, samples, nfe, None, &mut StdRng::seed_from_u64(point.seed));
+    let guided = bench.model.sample(&cond, samples, nfe, Some(&guidance), &mut StdRng::seed_from_u64(point.seed));
     let change = |k: usize| -> f64 {
         let at = traj.action(k);
         let sum: f32 = (0..samples)

@@ -83,9 +83,6 @@ impl Store {
         if let Some(a) = point.adaptive {
             steps += &format!("\0adaptive {}", a.reference);
         }
-        if point.symmetric {
-            steps += "\0symmetric";
-        }
         let inputs = format!("{:x}", Sha256::digest(format!("{}\0{settings}{steps}", m.content)));
         let model = format!("{}@{}", m.label, &inputs[..12]);
         format!("{model},{},{h},{nfe},{w},{},{k},{seed}", m.model.objective.name(), g.trim_matches('"'))

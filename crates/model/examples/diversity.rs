@@ -44,7 +44,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             };
             let row = layout.interleave(&w.states, &w.actions);
             let cond: Vec<f32> = (0..DRAWS).flat_map(|_| row[..c].iter().copied()).collect();
-            let out = model.sample(&cond, DRAWS, nfe, None, None, &mut rng);
+            let out = model.sample(&cond, DRAWS, nfe, None, &mut rng);
             // Mean and standard deviation of each future entry across the draws.
             let moments: Vec<(f64, f64)> = (0..f)
                 .map(|j| {

@@ -27,12 +27,11 @@
 pub mod ddpm;
 pub mod fm;
 pub mod meanflow;
-mod mirror;
 pub mod train;
 pub mod trajectory;
 
 pub use train::{ModelError, TrainConfig, Trainer, WindowSet};
-pub use trajectory::{ModelConfig, Objective, Pairing, SampleMirror, TaskGuidance, TokenLayout, TrajectoryModel};
+pub use trajectory::{ModelConfig, Objective, Pairing, TaskGuidance, TokenLayout, TrajectoryModel};
 
 use std::ops::Range;
 

@@ -320,9 +320,9 @@ impl Trainer {
         let batch = match self.model.objective {
             Objective::Fm { time, .. } => fm::training_batch(clean, dim, time, rng),
             // The target reads the network as the velocity it stands for.
-            Objective::MeanFlow { share, consistency, .. } => self.model.with_flow_net(&self.model.net, |net| {
-                meanflow::training_batch(net, cond, clean, dim, (share, consistency), rng)
-            }),
+            Objective::MeanFlow { share, consistency, .. } => self
+                .model
+                .with_flow_net(|net| meanflow::training_batch(net, cond, clean, dim, (share, consistency), rng)),
             Objective::Ddpm { steps, prediction, .. } => {
                 ddpm::training_batch(&ddpm::Schedule::cosine(steps), prediction, clean, dim, rng)
             }

@@ -10,11 +10,9 @@
 //! only look at `tau_t`.
 
 use crate::fm::{self, Solver};
-use crate::mirror::Mirrored;
-use crate::{Gradient, Guidance, ModelError, Network, ddpm, meanflow};
+use crate::{Gradient, Guidance, Network, ddpm, meanflow};
 use flowmimic_data::{Stats, WindowSpec};
 use flowmimic_nn::{Transformer, TransformerConfig};
-use flowmimic_sim::{Mirror, NUM_DOFS, STATE_DIM};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
@@ -451,14 +449,6 @@ pub struct TrajectoryModel {
     pub norm: Normaliser,
 }
 
-/// The left-right mirror of a model's conditioning and samples, for mirror-symmetric sampling
-/// ([`crate::mirror`]); [`TrajectoryModel::mirror`] makes it.
-#[derive(Clone, Debug)]
-pub struct SampleMirror {
-    cond: Mirror,
-    sample: Mirror,
-}
-
 /// Guidance in physical units: `grad` is the task cost's gradient at predicted clean futures
 /// (n x future, physical units); the model maps it to its normalised space.
 pub struct TaskGuidance<'a> {
@@ -480,34 +470,15 @@ impl TrajectoryModel {
         &self.net.layout
     }
 
-    /// The mirror of this model's windows, tokens of the humanoid's state and action
-    /// (`flowmimic_sim::Mirror`); an error for a model of other dimensions.
-    pub fn mirror(&self) -> Result<SampleMirror, ModelError> {
-        let layout = self.layout();
-        if (layout.state_dim, layout.action_dim) != (STATE_DIM, NUM_DOFS) {
-            return Err(ModelError::Invalid(format!(
-                "mirror-symmetric sampling needs the humanoid's state and action ({STATE_DIM} and {NUM_DOFS}); this model's are {} and {}",
-                layout.state_dim, layout.action_dim
-            )));
-        }
-        let (state, action) = (Mirror::state(), Mirror::action());
-        let window = Mirror::concat(&[&state, &action].repeat(layout.tokens()));
-        let c = layout.cond_len();
-        Ok(SampleMirror { cond: window.slice(0..c), sample: window.slice(c..c + layout.future_len()) })
-    }
-
     /// Samples futures (n x future, physical units) given conditionings (n x cond, physical
     /// units, as [`TokenLayout::interleave`] of the history's states and actions) with `nfe`
-    /// network evaluations; with guidance, its gradient is taken as `guidance.gradient` says;
-    /// with a mirror, from the network averaged with its mirror image ([`crate::mirror`]), at
-    /// twice the batch.
+    /// network evaluations; with guidance, its gradient is taken as `guidance.gradient` says.
     pub fn sample(
         &self,
         cond: &[f32],
         n: usize,
         nfe: usize,
         guidance: Option<&TaskGuidance>,
-        mirror: Option<&SampleMirror>,
         rng: &mut impl Rng,
     ) -> Vec<f32> {
         let (c, f) = (self.layout().cond_len(), self.layout().future_len());
@@ -527,32 +498,26 @@ impl TrajectoryModel {
             gradient: g.gradient,
         });
         let noise: Vec<f32> = (0..n * f).map(|_| StandardNormal.sample(rng)).collect();
-        let mirrored = mirror.map(|m| Mirrored { net: &self.net, cond: &m.cond, sample: &m.sample });
-        let raw: &dyn Network = match &mirrored {
-            Some(m) => m,
-            None => &self.net,
-        };
         let mut x = match self.objective {
             Objective::Fm { solver, .. } => {
-                self.with_flow_net(raw, |net| fm::sample(net, &cond, noise, n, nfe, solver, inner.as_ref()))
+                self.with_flow_net(|net| fm::sample(net, &cond, noise, n, nfe, solver, inner.as_ref()))
             }
             Objective::MeanFlow { .. } => {
-                self.with_flow_net(raw, |net| meanflow::sample(net, &cond, noise, n, nfe, inner.as_ref()))
+                self.with_flow_net(|net| meanflow::sample(net, &cond, noise, n, nfe, inner.as_ref()))
             }
             Objective::Ddpm { steps, prediction, clip } => {
                 let schedule = ddpm::Schedule::cosine(steps);
-                ddpm::sample(raw, &schedule, prediction, &cond, noise, n, nfe, clip, inner.as_ref(), rng)
+                ddpm::sample(&self.net, &schedule, prediction, &cond, noise, n, nfe, clip, inner.as_ref(), rng)
             }
         };
         self.norm.denormalise(&mut x, c, f);
         x
     }
 
-    /// Runs `f` on the network `net` (this model's, or it mirrored) as Flow Matching's and
-    /// MeanFlow's samplers and MeanFlow's target read it: as a velocity, through
-    /// [`fm::CleanSample`] when it predicts the clean sample.
-    pub(crate) fn with_flow_net<R>(&self, net: &dyn Network, f: impl FnOnce(&dyn Network) -> R) -> R {
-        if self.objective.predicts_clean_flow() { f(&fm::CleanSample(net)) } else { f(net) }
+    /// Runs `f` on the network as Flow Matching's and MeanFlow's samplers and MeanFlow's target
+    /// read it: as a velocity, through [`fm::CleanSample`] when it predicts the clean sample.
+    pub(crate) fn with_flow_net<R>(&self, f: impl FnOnce(&dyn Network) -> R) -> R {
+        if self.objective.predicts_clean_flow() { f(&fm::CleanSample(&self.net)) } else { f(&self.net) }
     }
 
     /// Network FLOPs of one sampling call for `n` samples at `nfe`.

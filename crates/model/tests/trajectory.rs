@@ -49,7 +49,7 @@ fn guidance_acts_in_physical_units() {
     let objective = TrainConfig::default().objective("fm").unwrap();
     let model = TrajectoryModel::new(l, config, objective, stats, 0);
     let cond = vec![10.0f32; 4 * l.cond_len()];
-    let unguided = model.sample(&cond, 4, 10, None, None, &mut StdRng::seed_from_u64(1));
+    let unguided = model.sample(&cond, 4, 10, None, &mut StdRng::seed_from_u64(1));
     // An untrained model predicts about zero velocity: samples stay near the mean (10 for
     // states) in physical units.
     let f = l.future_len();
@@ -64,7 +64,7 @@ fn guidance_acts_in_physical_units() {
         g
     };
     let guidance = TaskGuidance { weight: 0.2, grad: &grad, steps: 0..10, gradient: Gradient::CostOnly };
-    let guided = model.sample(&cond, 4, 10, Some(&guidance), None, &mut StdRng::seed_from_u64(1));
+    let guided = model.sample(&cond, 4, 10, Some(&guidance), &mut StdRng::seed_from_u64(1));
     assert!(state0(&guided) > state0(&unguided) + 10.0, "guided {} vs {}", state0(&guided), state0(&unguided));
     // The other entries move far less than the guided one.
     let change = state0(&guided) - state0(&unguided);

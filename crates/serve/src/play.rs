@@ -487,7 +487,6 @@ impl Simulation<'_> {
             guidance_steps: c.guidance_steps(),
             gradient: c.gradient,
             adaptive: c.adaptive,
-            symmetric: c.symmetric,
             tasks: vec![r.task],
             seed: c.seed,
             start: format!("clip '{}', live play", self.clip.name),

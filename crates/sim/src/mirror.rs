@@ -10,8 +10,7 @@ use crate::state::state_feature_names;
 use std::ops::Neg;
 
 /// A mirror of one vector layout: entry `i` of the image is entry `source[i]`, negated where
-/// `flip[i]`. Mirroring twice is the identity, and the mirror is its own transpose (a twin's
-/// twin is the entry itself, flipped alike), so it also carries gradients back.
+/// `flip[i]`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Mirror {
     source: Vec<usize>,
@@ -44,27 +43,6 @@ impl Mirror {
                 .map(|n| n.rsplit(separator).next().is_some_and(|axis| flipped(n).contains(axis)))
                 .collect(),
         }
-    }
-
-    /// Layouts one after another: entry `i` of part `k` is entry `offset_k + i` of the whole.
-    pub fn concat(parts: &[&Mirror]) -> Self {
-        let mut whole = Self { source: Vec::new(), flip: Vec::new() };
-        for part in parts {
-            let offset = whole.source.len();
-            whole.source.extend(part.source.iter().map(|s| s + offset));
-            whole.flip.extend(&part.flip);
-        }
-        whole
-    }
-
-    /// The entries `range` of this layout, a layout of their own (each entry's twin must lie
-    /// in the range too).
-    pub fn slice(&self, range: std::ops::Range<usize>) -> Self {
-        let source =
-            self.source[range.clone()].iter().map(|s| s.checked_sub(range.start).expect("twin in range")).collect();
-        let this = Self { source, flip: self.flip[range].to_vec() };
-        assert!(this.source.iter().all(|&s| s < this.source.len()), "twin in range");
-        this
     }
 
     /// The image of `x`, one row of this layout.
