@@ -28,7 +28,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let traj = Layout { horizon: model.layout().spec.horizon };
     let horizon_s = traj.horizon as f64 / CONTROL_HZ;
     // Per environment: planned yaw rate over the horizon, on the first step, executed.
-    let mut sums = vec![[0.0f64; 3]; ENVS];
+    let mut sums = [[0.0f64; 3]; ENVS];
     for step in 0..STEPS {
         let before: Vec<f64> = (0..ENVS).map(|e| heading(controller.env(e).bodies().rot[0])).collect();
         controller.step(&tasks, step as f64 / CONTROL_HZ)?;
