@@ -17,8 +17,8 @@
 //!
 //! `manifest.json` lists the dimensions, feature and body names, the control rate and every
 //! shard with its clip, expert, seed, step count and SHA-256 (and `mirror_of`, the source's
-//! SHA-256, for a shard that is another's left-right mirror image). Adding a clip writes one shard and rewrites only the
-//! manifest (atomically).
+//! SHA-256, for a shard that is another's left-right mirror image). Adding a clip writes one
+//! shard and rewrites only the manifest (atomically).
 
 use crate::DataError;
 use flowmimic_io::le;
