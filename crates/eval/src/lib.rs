@@ -45,10 +45,14 @@ pub fn reach_errors(hand: &[[f64; 3]], target: &[[f64; 3]]) -> (f64, f64) {
     (d.iter().sum::<f64>() / n, (d.iter().map(|x| x * x).sum::<f64>() / n).sqrt())
 }
 
-/// Composition success: pelvis within 0.5 m of the waypoint and hand within 0.15 m of the
-/// target at the same time.
+/// How close (m) the hand must come to its target to count as there: composition success and
+/// the reach protocol's "within 0.15 m".
+pub const HAND_REACHED: f64 = 0.15;
+
+/// Composition success: pelvis within 0.5 m of the waypoint and hand within [`HAND_REACHED`] of
+/// the target at the same time.
 pub fn composition_success(pelvis_to_waypoint: f64, hand_to_target: f64) -> bool {
-    pelvis_to_waypoint <= 0.5 && hand_to_target <= 0.15
+    pelvis_to_waypoint <= 0.5 && hand_to_target <= HAND_REACHED
 }
 
 /// Mean vector and covariance matrix (row-major) of feature rows.

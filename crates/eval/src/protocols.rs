@@ -1,7 +1,7 @@
 //! The paper's evaluation protocols, each run through the same controller as `flowmimic run`
 //! with all trials batched into one set of environments.
 
-use crate::{composition_success, reach_errors, velocity_rmse};
+use crate::{HAND_REACHED, composition_success, reach_errors, velocity_rmse};
 use flowmimic_control::{Adaptive, ControlConfig, ControlError, Hand, Rollout, StepReport, Task, controller};
 use flowmimic_geom::{DVec3, heading, quat_from_wxyz, wrap_angle, yaw_quat};
 use flowmimic_model::{Gradient, TrajectoryModel};
@@ -173,9 +173,9 @@ pub struct ReachTrial {
 }
 
 impl ReachTrial {
-    /// The hand came within the composition's 0.15 m of the target at some step.
+    /// The hand came within [`HAND_REACHED`] of the target at some step.
     pub fn reached(&self) -> bool {
-        self.min <= 0.15
+        self.min <= HAND_REACHED
     }
 }
 
