@@ -4,16 +4,27 @@
 
 use flowmimic_control::{ControlConfig, Controller, Hand, JoystickSegment, Task, run};
 use flowmimic_model::TrajectoryModel;
+use flowmimic_motion::Clip;
 use flowmimic_sim::skeleton::body;
 use flowmimic_sim::state::offset;
 use flowmimic_sim::{Humanoid, NUM_DOFS, SimConfig};
 use std::path::Path;
 
+/// A model shipped in `pretrained/models`.
+fn shipped(name: &str) -> TrajectoryModel {
+    TrajectoryModel::load(&Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models")).join(name))
+        .unwrap()
+}
+
+/// Where environment `e` of a run from `clip` starts (its `qpos`).
+fn start<'c>(clip: &'c Clip, model: &TrajectoryModel, e: usize) -> &'c [f64] {
+    &clip.qpos[flowmimic_control::controller::start_frame(clip.len(), model.layout().spec.history, e)]
+}
+
 #[test]
 fn the_controller_steps_as_run_records_and_restarts_and_pushes() {
     let h = Humanoid::new(SimConfig::default()).unwrap();
-    let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models/fm-walk"));
-    let model = TrajectoryModel::load(dir).unwrap();
+    let model = shipped("fm-walk");
     let clip = flowmimic_motion::straight_walk(&h).unwrap();
     let config = ControlConfig { seed: 3, kick_every: 0.2, kick_max: 0.3, ..ControlConfig::new(2, 5.0, 0.5) };
     let tasks = vec![Task::joystick_eval(), Task::walk()];
@@ -61,8 +72,7 @@ fn the_shipped_guidance_models_stop_when_the_joystick_says_walk_backward() {
     let h = Humanoid::new(SimConfig::default()).unwrap();
     let clip = flowmimic_motion::straight_walk(&h).unwrap();
     for name in ["guide", "fm"] {
-        let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models")).join(name);
-        let model = TrajectoryModel::load(&dir).unwrap();
+        let model = shipped(name);
         let segment = |vx| JoystickSegment { seconds: 2.0, vx, vy: 0.0, yaw_rate: 0.0 };
         let tasks = vec![Task { joystick: vec![segment(1.0), segment(-0.5)], ..Task::walk() }; 4];
         let forward_speed = |scale: f32| {
@@ -89,14 +99,12 @@ fn the_shipped_guidance_models_stop_when_the_joystick_says_walk_backward() {
 #[test]
 fn the_shipped_guidance_model_walks_to_a_waypoint_off_to_its_left() {
     let h = Humanoid::new(SimConfig::default()).unwrap();
-    let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models/guide"));
-    let model = TrajectoryModel::load(dir).unwrap();
+    let model = shipped("guide");
     let clip = flowmimic_motion::straight_walk(&h).unwrap();
     // Each environment starts at its own frame of the walk along +x.
-    let history = model.layout().spec.history;
     let goals: Vec<[f64; 2]> = (0..4)
         .map(|e| {
-            let start = &clip.qpos[flowmimic_control::controller::start_frame(clip.len(), history, e)];
+            let start = start(&clip, &model, e);
             [start[0] + 2.5, start[1] + 2.5]
         })
         .collect();
@@ -121,8 +129,7 @@ fn the_shipped_one_step_model_survives_kicks_in_one_network_call() {
     let h = Humanoid::new(SimConfig::default()).unwrap();
     let clip = flowmimic_motion::straight_walk(&h).unwrap();
     let mean_survival = |name: &str| {
-        let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models")).join(name);
-        let model = TrajectoryModel::load(&dir).unwrap();
+        let model = shipped(name);
         let config = ControlConfig { kick_every: 1.0, kick_max: 0.5, ..ControlConfig::new(1, 0.0, 30.0) };
         let r = run(&model, &h, &clip, vec![Task::walk(); 8], &config, name, |_| {}).unwrap();
         (0..8).map(|e| r.survived[e] as f64).sum::<f64>() / 8.0
@@ -138,15 +145,13 @@ fn the_shipped_one_step_model_survives_kicks_in_one_network_call() {
 #[test]
 fn walking_up_to_a_hand_target_brings_the_hand_there() {
     let h = Humanoid::new(SimConfig::default()).unwrap();
-    let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models/fm"));
-    let model = TrajectoryModel::load(dir).unwrap();
+    let model = shipped("fm");
     let clip = flowmimic_motion::straight_walk(&h).unwrap();
-    let history = model.layout().spec.history;
     let targets: Vec<[f64; 3]> = [(2.0, -0.3), (2.5, 0.3), (2.2, 0.0), (2.4, -0.5)]
         .iter()
         .enumerate()
         .map(|(e, (x, y))| {
-            let start = &clip.qpos[flowmimic_control::controller::start_frame(clip.len(), history, e)];
+            let start = start(&clip, &model, e);
             [start[0] + x, start[1] + y, 0.82]
         })
         .collect();
