@@ -225,6 +225,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         gradient: common.guidance.gradient,
         guidance_steps: common.guidance.guidance_interval,
         adaptive: common.guidance.adaptive,
+        inverse_dynamics: common.guidance.inverse_dynamics,
         progress: &with_progress,
     };
     lib(match &cmd {

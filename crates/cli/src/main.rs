@@ -19,6 +19,7 @@ use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
 use config::Config;
 use flowmimic_control::ControlConfig;
+use flowmimic_model::InverseConfig;
 use flowmimic_sim::{Humanoid, NUM_DOFS, STATE_DIM, bench, mjcf, skeleton};
 use std::path::{Path, PathBuf};
 
@@ -121,6 +122,21 @@ enum Command {
         /// Continue from <out>/checkpoint.safetensors.
         #[arg(long)]
         resume: bool,
+    },
+    /// Fit inverse dynamics (an MLP from a state and the next one to the executed action) to a
+    /// dataset's transitions, into <model>/inverse.safetensors, with inverse-log.csv. `run`,
+    /// `eval` and `play` then execute its action for the plan's next state with
+    /// `--action inverse-dynamics`.
+    Inverse {
+        /// Dataset directory (`flowmimic collect` writes it).
+        #[arg(default_value = "runs/data")]
+        dataset: PathBuf,
+        /// The trajectory model directory to add it to.
+        #[arg(long)]
+        model: PathBuf,
+        /// Optimiser steps.
+        #[arg(long, default_value_t = InverseConfig::default().steps)]
+        steps: usize,
     },
     /// Drive the humanoid with a trained model, optionally steered by a task (joystick, reach,
     /// waypoint, or walk-to-a-point-while-reaching). Writes the rollout (states, actions,
@@ -292,6 +308,9 @@ fn run(cli: Cli) -> Result<()> {
         Command::Train { dataset, objective, out, steps, resume } => {
             let out = out.unwrap_or_else(|| model::default_out(&objective));
             model::train(&dataset, &objective, &out, steps, resume, config.model, config.train.clone())?
+        }
+        Command::Inverse { dataset, model, steps } => {
+            model::fit_inverse(&dataset, &model, &InverseConfig { steps, ..InverseConfig::default() })?
         }
         Command::Bench(BenchCommand::Model { repeats }) => {
             let paper = Config::load("paper", &[])?.model;

@@ -4,7 +4,9 @@ use crate::progress::{CsvLog, Progress};
 use anyhow::{Context, Result, bail};
 use flowmimic_data::{Dataset, Stats};
 use flowmimic_model::train::{CHECKPOINT_FILE, MODEL_FILE};
-use flowmimic_model::{ModelConfig, TokenLayout, TrainConfig, Trainer, TrajectoryModel, WindowSet};
+use flowmimic_model::{
+    InverseConfig, InverseDynamics, ModelConfig, TokenLayout, TrainConfig, Trainer, TrajectoryModel, WindowSet,
+};
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::{NUM_DOFS, STATE_DIM};
 use rand::SeedableRng;
@@ -127,6 +129,27 @@ pub fn train(
         trainer.save(out)?;
     }
     eprintln!("wrote {} (weights, stats, checkpoint, log.csv, loss.png)", out.display());
+    Ok(())
+}
+
+/// Fits inverse dynamics to `dataset` and adds it to the model directory `model_dir`.
+pub fn fit_inverse(dataset: &Path, model_dir: &Path, config: &InverseConfig) -> Result<()> {
+    // The model must load (and be this humanoid's) before minutes of fitting.
+    crate::run::load_model(model_dir)?;
+    let dataset = Dataset::open(dataset)?;
+    let progress = Progress::new(config.steps, 0);
+    let mut log = CsvLog::open(model_dir.join("inverse-log.csv"), "step,train_mse,validation_mse", None);
+    let inverse = InverseDynamics::fit(&dataset, STATE_DIM, NUM_DOFS, config, |p| {
+        let validation = p.validation_mse.map_or(String::new(), |v| format!("{v:.5}"));
+        log.rows.push(format!("{},{:.5},{validation}", p.step, p.train_mse));
+        progress.update(p.step, &format!("mse {:.5}  validation {validation:>7} (standardised actions)", p.train_mse));
+    })?;
+    progress.finish();
+    let path = model_dir.join(flowmimic_model::inverse::INVERSE_FILE);
+    inverse.save(&path)?;
+    log.save()?;
+    let last = log.rows.last().map_or("", String::as_str);
+    eprintln!("wrote {} (step,train_mse,validation_mse: {last})", path.display());
     Ok(())
 }
 

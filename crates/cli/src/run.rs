@@ -95,6 +95,12 @@ pub struct GuidanceArgs {
     /// and w; other tasks keep w (default: the fixed scale w throughout).
     #[arg(long, value_parser = parse_adaptive)]
     pub adaptive: Option<Adaptive>,
+    /// Share BETA of the executed action taken from inverse dynamics, 0 to 1: the action that
+    /// the model directory's inverse dynamics (`flowmimic inverse`) reads out of the current
+    /// state and the plan's next state, blended as a_plan + BETA (a_inverse - a_plan). 0: the
+    /// plan's own action (the paper).
+    #[arg(long, value_name = "BETA", default_value_t = 0.0)]
+    pub inverse_dynamics: f32,
 }
 
 impl GuidanceArgs {
@@ -104,6 +110,7 @@ impl GuidanceArgs {
             gradient: self.gradient,
             guidance_steps: self.guidance_interval,
             adaptive: self.adaptive,
+            inverse_dynamics: self.inverse_dynamics,
             ..control
         }
     }

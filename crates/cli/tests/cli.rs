@@ -137,6 +137,17 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
         let run = ok(dir, &args);
         assert!(run.contains("environments fell") && dir.join(&out).exists(), "{run}");
     }
+    // Inverse dynamics fits to the same data, lands in the model directory, and drives.
+    let text = ok(dir, &["inverse", "data", "--model", "fm", "--steps", "200"]);
+    assert!(text.contains("[  200/200]") && dir.join("fm/inverse-log.csv").exists(), "{text}");
+    let log = std::fs::read_to_string(dir.join("fm/inverse-log.csv")).unwrap();
+    let errors: Vec<f64> = log.lines().skip(1).map(|l| l.split(',').nth(1).unwrap().parse().unwrap()).collect();
+    assert!(errors.len() == 2 && errors[1] < errors[0], "inverse-dynamics errors {errors:?}");
+    let args = ["run", "--model", "fm", "--task", "joystick", "--seconds", "0.5", "--inverse-dynamics", "0.5"];
+    let run = ok(dir, &[&args[..], &["-o", "id.rollout.safetensors"]].concat());
+    assert!(run.contains("environments fell") && dir.join("id.rollout.safetensors").exists(), "{run}");
+    let (refused, text) = flowmimic(dir, &["run", "--model", "ddpm", "--inverse-dynamics", "0.5"]);
+    assert!(!refused && text.contains("no inverse.safetensors"), "{text}");
     exports_match_flowmimic_in_onnx_runtime(dir);
     // Rendering needs EGL (Mesa's software OpenGL); where the machine has none, the error
     // says what to install.

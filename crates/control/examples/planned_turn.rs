@@ -1,8 +1,9 @@
 //! What the guided plan does against what the humanoid executes, per environment: a joystick
 //! command held for 10 s from the generated straight walk, 8 environments, NFE 2.
 //!
-//! `cargo run --release -p flowmimic-control --example planned_turn -- MODEL W [VX YAW_RATE]`
-//! (defaults: 1 m/s forward, no turn). Prints, after the first second, the mean yaw rate and
+//! `cargo run --release -p flowmimic-control --example planned_turn -- MODEL W [VX YAW_RATE BETA]`
+//! (defaults: 1 m/s forward, no turn, the plan's own actions; BETA is the share of inverse
+//! dynamics in the executed action). Prints, after the first second, the mean yaw rate and
 //! forward speed the plans predict (over their horizon, and on their first step) and the ones
 //! executed.
 
@@ -19,13 +20,19 @@ const STEPS: usize = 300;
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let number = |i: usize, default: f64| args.get(i).map_or(Ok(default), |a| a.parse::<f64>());
-    let model = TrajectoryModel::load(Path::new(args.first().ok_or("usage: MODEL W [VX YAW_RATE]")?))?;
-    let (w, vx, yaw_rate) = (number(1, 30.0)?, number(2, 1.0)?, number(3, 0.0)?);
+    let model = TrajectoryModel::load(Path::new(args.first().ok_or("usage: MODEL W [VX YAW_RATE BETA]")?))?;
+    let (w, vx, yaw_rate, beta) = (number(1, 30.0)?, number(2, 1.0)?, number(3, 0.0)?, number(4, 0.0)?);
     let humanoid = Humanoid::new(SimConfig::default())?;
     let clip = generate(&humanoid, "walk_straight", &GaitParams { duration: 10.0, ..Default::default() })?.0;
     let segment = JoystickSegment { seconds: 10.0, vx, vy: 0.0, yaw_rate };
     let tasks = vec![Task { joystick: vec![segment], ..Task::walk() }; ENVS];
-    let mut controller = Controller::new(&model, &humanoid, &clip, ENVS, &ControlConfig::new(2, w as f32, 10.0))?;
+    let mut controller = Controller::new(
+        &model,
+        &humanoid,
+        &clip,
+        ENVS,
+        &ControlConfig { inverse_dynamics: beta as f32, ..ControlConfig::new(2, w as f32, 10.0) },
+    )?;
     let traj = Layout { horizon: model.layout().spec.horizon };
     let (h, horizon_s) = (traj.horizon, traj.horizon as f64 / CONTROL_HZ);
     // Per environment: the yaw rate over the plan's horizon, on its first step and executed;

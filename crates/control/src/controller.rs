@@ -40,6 +40,12 @@ pub struct ControlConfig {
     /// Actions of each sampled trajectory executed before sampling again (1: the paper's
     /// receding horizon; up to H + 1).
     pub execute: usize,
+    /// The share `beta` of the executed action taken from inverse dynamics
+    /// ([`flowmimic_model::InverseDynamics`]) of the current state and the plan's next state:
+    /// `a_plan + beta (a_inverse - a_plan)`. 0: the plan's own action (the paper); above 0
+    /// needs a model directory with inverse dynamics, and `execute` 1.
+    #[serde(default)]
+    pub inverse_dynamics: f32,
     /// Sleep so that steps happen at 30 Hz of wall-clock time.
     pub paced: bool,
     pub seed: u64,
@@ -62,6 +68,7 @@ impl ControlConfig {
             guidance_steps: None,
             seconds,
             execute: 1,
+            inverse_dynamics: 0.0,
             paced: false,
             seed: 0,
             kick_every: 0.0,
@@ -141,13 +148,29 @@ pub struct StepOutcome {
     pub physics_ms: f32,
 }
 
-/// Refuses sampler settings that cannot run: no solver steps, a negative or NaN scale.
-fn check_sampler(config: &ControlConfig) -> Result<(), ControlError> {
+/// Refuses sampler settings that cannot run: no solver steps, a negative or NaN scale,
+/// inverse-dynamics actions without the model or with several actions per plan.
+fn check_sampler(model: &TrajectoryModel, config: &ControlConfig) -> Result<(), ControlError> {
     if config.nfe == 0 {
         return Err(ControlError::BadCommand { what: "NFE (at least 1)", value: 0.0 });
     }
     if !config.guidance_scale.is_finite() || config.guidance_scale < 0.0 {
         return Err(ControlError::BadCommand { what: "guidance scale", value: f64::from(config.guidance_scale) });
+    }
+    let beta = config.inverse_dynamics;
+    if !(0.0..=1.0).contains(&beta) {
+        return Err(ControlError::BadCommand { what: "inverse-dynamics share (0 to 1)", value: f64::from(beta) });
+    }
+    if beta > 0.0 && model.inverse.is_none() {
+        return Err(ControlError::Sampler(
+            "inverse-dynamics actions: the model directory has no inverse.safetensors (`flowmimic inverse`)".into(),
+        ));
+    }
+    if beta > 0.0 && config.execute != 1 {
+        return Err(ControlError::Sampler(format!(
+            "inverse-dynamics actions need execute 1 (the plan's next state is for the current step), not {}",
+            config.execute
+        )));
     }
     config.guidance_steps.map_or(Ok(()), |steps| check_guidance_steps(steps, config.nfe))
 }
@@ -170,7 +193,7 @@ impl<'m> Controller<'m> {
         envs: usize,
         config: &ControlConfig,
     ) -> Result<Self, ControlError> {
-        check_sampler(config)?;
+        check_sampler(model, config)?;
         let n_hist = model.layout().spec.history;
         if clip.len() < n_hist + 2 {
             return Err(ControlError::Start(format!("clip '{}' is shorter than the history", clip.name)));
@@ -212,7 +235,7 @@ impl<'m> Controller<'m> {
 
     /// Changes the sampler (NFE, scale, gradient, interval) from the next step on.
     pub fn set_config(&mut self, config: ControlConfig) -> Result<(), ControlError> {
-        check_sampler(&config)?;
+        check_sampler(self.model, &config)?;
         self.config = config;
         Ok(())
     }
@@ -278,8 +301,24 @@ impl<'m> Controller<'m> {
                 steps: g0..g1,
                 gradient: self.config.gradient,
             });
-            let futures = model.sample(&cond, replan.len(), self.config.nfe, guidance.as_ref(), &mut self.rng);
+            let mut futures = model.sample(&cond, replan.len(), self.config.nfe, guidance.as_ref(), &mut self.rng);
             let len = traj.len();
+            let beta = self.config.inverse_dynamics;
+            if beta > 0.0 {
+                let inverse = model.inverse.as_ref().expect("checked in Controller::new");
+                let sd = layout.state_dim;
+                let mut pairs = Vec::with_capacity(replan.len() * 2 * sd);
+                for (i, c) in cond.chunks_exact(layout.cond_len()).enumerate() {
+                    pairs.extend_from_slice(&c[c.len() - sd..]);
+                    pairs.extend_from_slice(&futures[i * len + traj.state(1)..][..sd]);
+                }
+                let actions = inverse.actions(&pairs, replan.len());
+                for (future, a) in futures.chunks_exact_mut(len).zip(actions.chunks_exact(NUM_DOFS)) {
+                    for (p, q) in future[traj.action(0)..][..NUM_DOFS].iter_mut().zip(a) {
+                        *p += beta * (q - *p);
+                    }
+                }
+            }
             for (i, &e) in replan.iter().enumerate() {
                 self.plans[e] = Some((futures[i * len..(i + 1) * len].to_vec(), 0));
             }

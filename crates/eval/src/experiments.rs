@@ -40,6 +40,8 @@ pub struct Study<'a> {
     pub guidance_steps: Option<(usize, usize)>,
     /// Adaptive guidance's reference error (`None`: the fixed scale).
     pub adaptive: Option<Adaptive>,
+    /// Share of the executed action taken from inverse dynamics (0: the plan's own).
+    pub inverse_dynamics: f32,
     pub progress: &'a WithProgress<'a>,
 }
 
@@ -54,8 +56,17 @@ impl Study<'_> {
     }
 
     fn point(&self, nfe: usize, scale: f32) -> Point {
-        let (guidance_steps, adaptive) = (self.guidance_steps, self.adaptive);
-        Point { nfe, scale, execute: self.execute, seed: self.seed, gradient: self.gradient, guidance_steps, adaptive }
+        let (guidance_steps, adaptive, inverse_dynamics) = (self.guidance_steps, self.adaptive, self.inverse_dynamics);
+        Point {
+            nfe,
+            scale,
+            execute: self.execute,
+            seed: self.seed,
+            gradient: self.gradient,
+            guidance_steps,
+            adaptive,
+            inverse_dynamics,
+        }
     }
 
     fn by_nfe(&self, nfe: &[usize]) -> Vec<Point> {
@@ -470,7 +481,16 @@ impl Study<'_> {
                 for gradient in [Gradient::ThroughNetwork, Gradient::CostOnly] {
                     for &scale in scales {
                         let guidance_steps = self.guidance_steps;
-                        let point = Point { nfe, scale, execute: 1, seed: 0, gradient, guidance_steps, adaptive: None };
+                        let point = Point {
+                            nfe,
+                            scale,
+                            execute: 1,
+                            seed: 0,
+                            gradient,
+                            guidance_steps,
+                            adaptive: None,
+                            inverse_dynamics: 0.0,
+                        };
                         let e = protocols::guidance_effect(&m.bench(self.humanoid, self.clip), task, point, samples)?;
                         let g = serde_json::to_string(&gradient)?;
                         println!(

@@ -38,6 +38,13 @@ pub struct Point {
     /// Adaptive guidance's reference error; `None`: the fixed scale.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub adaptive: Option<Adaptive>,
+    /// Share of the executed action taken from inverse dynamics (0: the plan's own).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub inverse_dynamics: f32,
+}
+
+fn is_zero(share: &f32) -> bool {
+    *share == 0.0
 }
 
 impl Bench<'_> {
@@ -57,6 +64,7 @@ impl Bench<'_> {
             guidance_steps: point.guidance_steps,
             seconds,
             execute: point.execute,
+            inverse_dynamics: point.inverse_dynamics,
             paced: false,
             seed: point.seed,
             kick_every: if kicks { 1.0 } else { 0.0 },

@@ -27,6 +27,9 @@ pub struct EvalModel {
     /// SHA-256 of the model's weights and statistics: stored results are keyed by it, so a
     /// retrained model in the same folder is evaluated anew.
     pub content: String,
+    /// SHA-256 of its inverse-dynamics file, if any: part of the key of points that execute
+    /// its actions.
+    pub inverse_content: Option<String>,
 }
 
 impl EvalModel {
@@ -37,7 +40,12 @@ impl EvalModel {
             h.update(flowmimic_io::read(&dir.join(file))?);
         }
         let content = format!("{:x}", h.finalize());
-        Ok(Self { label: label.to_string(), dir: dir.into(), model, content })
+        let inverse = dir.join(flowmimic_model::inverse::INVERSE_FILE);
+        let inverse_content = match model.inverse {
+            Some(_) => Some(format!("{:x}", Sha256::digest(flowmimic_io::read(&inverse)?))),
+            None => None,
+        };
+        Ok(Self { label: label.to_string(), dir: dir.into(), model, content, inverse_content })
     }
 
     pub fn bench<'a>(&'a self, humanoid: &'a Arc<Humanoid>, clip: &'a Clip) -> Bench<'a> {
@@ -82,6 +90,10 @@ impl Store {
         let mut steps = point.guidance_steps.map(|(a, b)| format!("\0guided steps {a}..{b}")).unwrap_or_default();
         if let Some(a) = point.adaptive {
             steps += &format!("\0adaptive {}", a.reference);
+        }
+        if point.inverse_dynamics > 0.0 {
+            let inverse = m.inverse_content.as_deref().unwrap_or("none");
+            steps += &format!("\0inverse dynamics {} {inverse}", point.inverse_dynamics);
         }
         let inputs = format!("{:x}", Sha256::digest(format!("{}\0{settings}{steps}", m.content)));
         let model = format!("{}@{}", m.label, &inputs[..12]);

@@ -26,10 +26,12 @@
 
 pub mod ddpm;
 pub mod fm;
+pub mod inverse;
 pub mod meanflow;
 pub mod train;
 pub mod trajectory;
 
+pub use inverse::{InverseConfig, InverseDynamics};
 pub use train::{ModelError, TrainConfig, Trainer, WindowSet};
 pub use trajectory::{ModelConfig, Objective, Pairing, TaskGuidance, TokenLayout, TrajectoryModel};
 

@@ -11,6 +11,7 @@
 //! Both objectives share everything here (network, optimiser, data, batches, budget); only the
 //! training batch's noise and target differ.
 
+use crate::inverse::{INVERSE_FILE, InverseDynamics};
 use crate::trajectory::{Normaliser, Objective, TokenLayout, TrajectoryModel};
 use crate::{ModelConfig, TrainingBatch, ddpm, fm, meanflow};
 use flowmimic_data::{DataError, Dataset, Shard, Stats, window, window_starts};
@@ -157,9 +158,8 @@ impl WindowSet {
         for (s, shard) in shards.iter().enumerate() {
             for t in window_starts(shard, layout.spec) {
                 // A rollout goes wholly to one side, so overlapping windows never straddle it.
-                let key = splitmix((s as u64) << 32 | u64::from(shard.rollout[t]));
-                let held_out = ((key >> 11) as f64 / (1u64 << 53) as f64) < validation_fraction;
-                if held_out { &mut validation } else { &mut train }.push((s, t));
+                if held_out(s, shard.rollout[t], validation_fraction) { &mut validation } else { &mut train }
+                    .push((s, t));
             }
         }
         if train.is_empty() {
@@ -407,6 +407,13 @@ impl Trainer {
     }
 }
 
+/// Whether rollout `rollout` of shard `s` is held out for validation: a fixed hash of both,
+/// so the split is the same on every run.
+pub(crate) fn held_out(s: usize, rollout: u32, fraction: f64) -> bool {
+    let key = splitmix((s as u64) << 32 | u64::from(rollout));
+    ((key >> 11) as f64 / (1u64 << 53) as f64) < fraction
+}
+
 impl TrajectoryModel {
     /// Loads a model directory written by [`Trainer::save`].
     pub fn load(dir: &Path) -> Result<Self, ModelError> {
@@ -432,6 +439,11 @@ impl TrajectoryModel {
         }
         if net.params.iter().any(|p| !p.is_finite()) {
             return Err(file.error("weights contain NaN or infinity").into());
+        }
+        let inverse = dir.join(INVERSE_FILE);
+        if inverse.exists() {
+            let layout = model.layout();
+            model.inverse = Some(InverseDynamics::load(&inverse, layout.state_dim, layout.action_dim)?);
         }
         Ok(model)
     }

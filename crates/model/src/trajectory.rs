@@ -10,6 +10,7 @@
 //! only look at `tau_t`.
 
 use crate::fm::{self, Solver};
+use crate::inverse::InverseDynamics;
 use crate::{Gradient, Guidance, Network, ddpm, meanflow};
 use flowmimic_data::{Stats, WindowSpec};
 use flowmimic_nn::{Transformer, TransformerConfig};
@@ -447,6 +448,9 @@ pub struct TrajectoryModel {
     pub net: TrajectoryNet,
     pub stats: Stats,
     pub norm: Normaliser,
+    /// An inverse-dynamics model fitted to the same data, when the model directory holds one
+    /// ([`crate::inverse`]): the controller may execute its action for the plan's next state.
+    pub inverse: Option<InverseDynamics>,
 }
 
 /// Guidance in physical units: `grad` is the task cost's gradient at predicted clean futures
@@ -463,7 +467,7 @@ impl TrajectoryModel {
     pub fn new(layout: TokenLayout, config: ModelConfig, objective: Objective, stats: Stats, seed: u64) -> Self {
         let net = Transformer::new(config.transformer(&layout), &mut StdRng::seed_from_u64(seed));
         let norm = Normaliser::new(&layout, &stats);
-        Self { config, objective, net: TrajectoryNet::new(layout, config.pairing, net), stats, norm }
+        Self { config, objective, net: TrajectoryNet::new(layout, config.pairing, net), stats, norm, inverse: None }
     }
 
     pub fn layout(&self) -> &TokenLayout {
