@@ -128,9 +128,9 @@ enum Command {
     /// `eval` and `play` then execute its action for the plan's next state with
     /// `--action inverse-dynamics`.
     Inverse {
-        /// Dataset directory (`flowmimic collect` writes it).
+        /// Dataset directories (`flowmimic collect` writes them); their transitions pool.
         #[arg(default_value = "runs/data")]
-        dataset: PathBuf,
+        datasets: Vec<PathBuf>,
         /// The trajectory model directory to add it to.
         #[arg(long)]
         model: PathBuf,
@@ -309,8 +309,8 @@ fn run(cli: Cli) -> Result<()> {
             let out = out.unwrap_or_else(|| model::default_out(&objective));
             model::train(&dataset, &objective, &out, steps, resume, config.model, config.train.clone())?
         }
-        Command::Inverse { dataset, model, steps } => {
-            model::fit_inverse(&dataset, &model, &InverseConfig { steps, ..InverseConfig::default() })?
+        Command::Inverse { datasets, model, steps } => {
+            model::fit_inverse(&datasets, &model, &InverseConfig { steps, ..InverseConfig::default() })?
         }
         Command::Bench(BenchCommand::Model { repeats }) => {
             let paper = Config::load("paper", &[])?.model;

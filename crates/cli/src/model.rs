@@ -132,14 +132,14 @@ pub fn train(
     Ok(())
 }
 
-/// Fits inverse dynamics to `dataset` and adds it to the model directory `model_dir`.
-pub fn fit_inverse(dataset: &Path, model_dir: &Path, config: &InverseConfig) -> Result<()> {
+/// Fits inverse dynamics to `datasets` and adds it to the model directory `model_dir`.
+pub fn fit_inverse(datasets: &[PathBuf], model_dir: &Path, config: &InverseConfig) -> Result<()> {
     // The model must load (and be this humanoid's) before minutes of fitting.
     crate::run::load_model(model_dir)?;
-    let dataset = Dataset::open(dataset)?;
+    let datasets: Vec<Dataset> = datasets.iter().map(|d| Dataset::open(d)).collect::<Result<_, _>>()?;
     let progress = Progress::new(config.steps, 0);
     let mut log = CsvLog::open(model_dir.join("inverse-log.csv"), "step,train_mse,validation_mse", None);
-    let inverse = InverseDynamics::fit(&dataset, STATE_DIM, NUM_DOFS, config, |p| {
+    let inverse = InverseDynamics::fit(&datasets, STATE_DIM, NUM_DOFS, config, |p| {
         let validation = p.validation_mse.map_or(String::new(), |v| format!("{v:.5}"));
         log.rows.push(format!("{},{:.5},{validation}", p.step, p.train_mse));
         progress.update(p.step, &format!("mse {:.5}  validation {validation:>7} (standardised actions)", p.train_mse));

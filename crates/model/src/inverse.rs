@@ -107,10 +107,10 @@ pub struct FitProgress {
 }
 
 impl InverseDynamics {
-    /// Fits a model to every transition of `dataset`, holding out a share of each shard's
+    /// Fits a model to every transition of `datasets`, holding out a share of each shard's
     /// rollouts; `on_progress` hears about every 100th step and the last.
     pub fn fit(
-        dataset: &Dataset,
+        datasets: &[Dataset],
         state_dim: usize,
         action_dim: usize,
         config: &InverseConfig,
@@ -125,7 +125,11 @@ impl InverseDynamics {
         let width = 2 * state_dim;
         let mut rng = StdRng::seed_from_u64(config.seed);
         let (mut train_x, mut train_y, mut val_x, mut val_y) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        for (s, (_, shard)) in dataset.load_all()?.iter().enumerate() {
+        let mut shards = Vec::new();
+        for dataset in datasets {
+            shards.extend(dataset.load_all()?.into_iter().map(|(_, shard)| shard));
+        }
+        for (s, shard) in shards.iter().enumerate() {
             let (x, y, rollouts) = transitions(shard, state_dim, action_dim);
             for (k, &r) in rollouts.iter().enumerate() {
                 let held = held_out(s, r, config.validation_fraction);
@@ -135,9 +139,10 @@ impl InverseDynamics {
             }
         }
         if train_y.is_empty() {
+            let dirs: Vec<String> = datasets.iter().map(|d| d.dir.display().to_string()).collect();
             return Err(ModelError::Invalid(format!(
                 "{}: no transitions to fit inverse dynamics to (episodes of one step?)",
-                dataset.dir.display()
+                dirs.join(", ")
             )));
         }
         let input_norm = moments(&train_x, width);

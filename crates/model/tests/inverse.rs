@@ -53,7 +53,7 @@ fn fits_the_action_from_both_states_and_round_trips() {
     let config =
         InverseConfig { hidden: vec![64], steps: 1000, batch: 128, lr: 3e-3, validation_fraction: 0.25, seed: 0 };
     let mut last = None;
-    let model = InverseDynamics::fit(&data, sd, ad, &config, |p| last = Some(*p)).unwrap();
+    let model = InverseDynamics::fit(std::slice::from_ref(&data), sd, ad, &config, |p| last = Some(*p)).unwrap();
     let last = last.unwrap();
     assert_eq!(last.step, 1000);
     // 0.09 here; reading the action from s_t alone leaves 0.8 (checked by feeding s_t twice).
@@ -68,7 +68,7 @@ fn fits_the_action_from_both_states_and_round_trips() {
 
     let err = InverseDynamics::load(&path, sd, ad + 1).unwrap_err().to_string();
     assert!(err.contains("inverse.safetensors") && err.contains("actions of 69"), "{err}");
-    let err = InverseDynamics::fit(&data, sd, ad, &InverseConfig { steps: 0, ..config }, |_| {}).unwrap_err();
+    let err = InverseDynamics::fit(&[data], sd, ad, &InverseConfig { steps: 0, ..config }, |_| {}).unwrap_err();
     assert!(err.to_string().contains("steps (0)"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
