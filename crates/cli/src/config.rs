@@ -5,7 +5,7 @@
 
 use anyhow::{Context, Result, bail};
 use flowmimic_data::CollectConfig;
-use flowmimic_model::{ModelConfig, TrainConfig};
+use flowmimic_model::{InverseConfig, ModelConfig, TrainConfig};
 use flowmimic_sim::SimConfig;
 use flowmimic_track::TrackConfig;
 use serde::{Deserialize, Serialize};
@@ -24,6 +24,9 @@ pub struct Config {
     pub model: ModelConfig,
     #[serde(default)]
     pub train: TrainConfig,
+    /// Inverse dynamics beside the FM model (`flowmimic inverse`).
+    #[serde(default)]
+    pub inverse: InverseConfig,
 }
 
 /// The built-in presets, embedded from `configs/`.
@@ -80,7 +83,8 @@ impl Config {
         self.track.validate().map_err(|e| e.to_string())?;
         self.collect.validate()?;
         self.model.validate()?;
-        self.train.validate()
+        self.train.validate()?;
+        self.inverse.validate()
     }
 }
 
@@ -106,6 +110,7 @@ mod tests {
             ("[train]\nddpm_steps = 0\n", "DDPM"),
             ("[track]\nhidden = [0]\n", "hidden"),
             ("[collect]\nnoise = [[-0.1, 4]]\n", "sigma"),
+            ("[inverse]\nlr = -1.0\n", "inverse.lr"),
             ("[track]\nclip = -0.2\n", "positive"),
         ] {
             std::fs::write(&path, bad).unwrap();

@@ -134,9 +134,9 @@ enum Command {
         /// The trajectory model directory to add it to.
         #[arg(long)]
         model: PathBuf,
-        /// Optimiser steps.
-        #[arg(long, default_value_t = InverseConfig::default().steps)]
-        steps: usize,
+        /// Optimiser steps (overrides the preset's inverse.steps).
+        #[arg(long)]
+        steps: Option<usize>,
     },
     /// Drive the humanoid with a trained model, optionally steered by a task (joystick, reach,
     /// waypoint, or walk-to-a-point-while-reaching). Writes the rollout (states, actions,
@@ -310,7 +310,8 @@ fn run(cli: Cli) -> Result<()> {
             model::train(&dataset, &objective, &out, steps, resume, config.model, config.train.clone())?
         }
         Command::Inverse { datasets, model, steps } => {
-            model::fit_inverse(&datasets, &model, &InverseConfig { steps, ..InverseConfig::default() })?
+            let steps = steps.unwrap_or(config.inverse.steps);
+            model::fit_inverse(&datasets, &model, &InverseConfig { steps, ..config.inverse.clone() })?
         }
         Command::Bench(BenchCommand::Model { repeats }) => {
             let paper = Config::load("paper", &[])?.model;

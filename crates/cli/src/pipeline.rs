@@ -106,10 +106,17 @@ pub fn run(config: &Config, preset: &str, out: &Path, clip_files: &[PathBuf]) ->
     let mut model_keys = Vec::new();
     for objective in ["fm", "ddpm"] {
         let dir = out.join("model").join(objective);
-        let k = key(&[data_key.clone(), json(&config.model), json(&config.train), objective.into()]);
-        model_keys.push(stage(&format!("train {objective}"), &dir, k, || {
+        // The FM model gets inverse dynamics beside it (`run --inverse-dynamics`).
+        let fm = objective == "fm";
+        let mut parts = vec![data_key.clone(), json(&config.model), json(&config.train), objective.into()];
+        parts.extend(fm.then(|| json(&config.inverse)));
+        model_keys.push(stage(&format!("train {objective}"), &dir, key(&parts), || {
             let resume = dir.join(flowmimic_model::train::CHECKPOINT_FILE).exists();
-            crate::model::train(&data, objective, &dir, None, resume, config.model, config.train.clone())
+            crate::model::train(&data, objective, &dir, None, resume, config.model, config.train.clone())?;
+            if fm {
+                crate::model::fit_inverse(std::slice::from_ref(&data), &dir, &config.inverse)?;
+            }
+            Ok(())
         })?);
     }
     let eval_dir = out.join("eval");

@@ -267,6 +267,7 @@ fn the_pipeline_runs_every_stage_then_skips_what_is_done() {
     let first = ok(&dir, &["pipeline", "-o", "p"]);
     assert!(first.contains("== train ddpm: done") && first.contains("pipeline finished"), "{first}");
     assert!(dir.join("p/eval/report.md").exists() && dir.join("p/eval/survival.png").exists());
+    assert!(dir.join("p/model/fm/inverse.safetensors").exists(), "no inverse dynamics beside FM");
     let again = ok(&dir, &["pipeline", "-o", "p"]);
     assert_eq!(again.matches("(skipped)").count(), 6, "{again}");
     // Other model settings leave the stages before the model alone, and refuse to overwrite

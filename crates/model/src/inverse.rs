@@ -39,8 +39,28 @@ pub struct InverseConfig {
 }
 
 impl Default for InverseConfig {
+    /// The `cpu` preset's: how the shipped `fm`'s inverse dynamics was fitted (7 min on 2 cores).
     fn default() -> Self {
-        Self { hidden: vec![512, 512], steps: 6000, batch: 512, lr: 1e-3, validation_fraction: 0.05, seed: 0 }
+        Self { hidden: vec![512, 512], steps: 30_000, batch: 512, lr: 1e-3, validation_fraction: 0.05, seed: 0 }
+    }
+}
+
+impl InverseConfig {
+    /// Every value in range (a preset's `[inverse]` table).
+    pub fn validate(&self) -> Result<(), String> {
+        if self.steps == 0 || self.batch == 0 || self.hidden.contains(&0) || self.hidden.len() > 8 {
+            return Err(format!(
+                "inverse.steps ({}), inverse.batch ({}) and every width of inverse.hidden ({:?}, at most 8 layers) must be positive",
+                self.steps, self.batch, self.hidden
+            ));
+        }
+        if !self.lr.is_finite() || self.lr <= 0.0 {
+            return Err(format!("inverse.lr is {}; it must be positive", self.lr));
+        }
+        if !(0.0..1.0).contains(&self.validation_fraction) {
+            return Err(format!("inverse.validation_fraction is {}; it must be in [0, 1)", self.validation_fraction));
+        }
+        Ok(())
     }
 }
 
@@ -116,12 +136,7 @@ impl InverseDynamics {
         config: &InverseConfig,
         mut on_progress: impl FnMut(&FitProgress),
     ) -> Result<Self, ModelError> {
-        if config.steps == 0 || config.batch == 0 || !config.lr.is_finite() || config.lr <= 0.0 {
-            return Err(ModelError::Invalid(format!(
-                "inverse dynamics: steps ({}), batch ({}) and lr ({}) must be positive",
-                config.steps, config.batch, config.lr
-            )));
-        }
+        config.validate().map_err(ModelError::Invalid)?;
         let width = 2 * state_dim;
         let mut rng = StdRng::seed_from_u64(config.seed);
         let (mut train_x, mut train_y, mut val_x, mut val_y) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());

@@ -69,6 +69,6 @@ fn fits_the_action_from_both_states_and_round_trips() {
     let err = InverseDynamics::load(&path, sd, ad + 1).unwrap_err().to_string();
     assert!(err.contains("inverse.safetensors") && err.contains("actions of 69"), "{err}");
     let err = InverseDynamics::fit(&[data], sd, ad, &InverseConfig { steps: 0, ..config }, |_| {}).unwrap_err();
-    assert!(err.to_string().contains("steps (0)"), "{err}");
+    assert!(err.to_string().contains("inverse.steps (0)"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
