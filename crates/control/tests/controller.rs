@@ -63,6 +63,22 @@ fn the_controller_steps_as_run_records_and_restarts_and_pushes() {
     assert!(controller.step(&tasks, 1.0).is_ok());
 }
 
+/// 1 m/s forward for 2 s, then 0.5 m/s backward for 2 s, in 4 environments under `config`: the
+/// mean forward speed over the backward segment's last 1.3 s of those standing (at least 3).
+fn backward_command(model: &TrajectoryModel, h: &std::sync::Arc<Humanoid>, clip: &Clip, config: &ControlConfig) -> f32 {
+    let segment = |vx| JoystickSegment { seconds: 2.0, vx, vy: 0.0, yaw_rate: 0.0 };
+    let tasks = vec![Task { joystick: vec![segment(1.0), segment(-0.5)], ..Task::walk() }; 4];
+    let r = run(model, h, clip, tasks, config, "shipped", |_| {}).unwrap();
+    let standing: Vec<usize> = (0..4).filter(|&e| !r.fell(e)).collect();
+    assert!(standing.len() >= 3, "{} of 4 stand under {config:?}", standing.len());
+    let speeds: Vec<f32> = standing
+        .iter()
+        .flat_map(|&e| (80..r.steps).map(move |k| (e, k)))
+        .map(|(e, k)| r.state(e, k)[offset::ROOT_VEL])
+        .collect();
+    speeds.iter().sum::<f32>() / speeds.len() as f32
+}
+
 /// What guidance does to the humanoid, not to the model's output: each shipped guidance model
 /// (FM and DDPM), told to walk backward after 2 s of forward walking, comes to a stop where it
 /// walks on unguided (measured here over the segment's last 1.3 s: `guide` 0.93 against 0.08
@@ -73,20 +89,7 @@ fn the_shipped_guidance_models_stop_when_the_joystick_says_walk_backward() {
     let clip = flowmimic_motion::straight_walk(&h).unwrap();
     for name in ["guide", "fm"] {
         let model = shipped(name);
-        let segment = |vx| JoystickSegment { seconds: 2.0, vx, vy: 0.0, yaw_rate: 0.0 };
-        let tasks = vec![Task { joystick: vec![segment(1.0), segment(-0.5)], ..Task::walk() }; 4];
-        let forward_speed = |scale: f32| {
-            let r = run(&model, &h, &clip, tasks.clone(), &ControlConfig::new(2, scale, 4.0), name, |_| {}).unwrap();
-            let standing: Vec<usize> = (0..4).filter(|&e| !r.fell(e)).collect();
-            assert!(standing.len() >= 3, "{name}: {} of 4 stand at w {scale}", standing.len());
-            // The backward segment's last 1.3 s, of those standing.
-            let speeds: Vec<f32> = standing
-                .iter()
-                .flat_map(|&e| (80..r.steps).map(move |k| (e, k)))
-                .map(|(e, k)| r.state(e, k)[offset::ROOT_VEL])
-                .collect();
-            speeds.iter().sum::<f32>() / speeds.len().max(1) as f32
-        };
+        let forward_speed = |scale: f32| backward_command(&model, &h, &clip, &ControlConfig::new(2, scale, 4.0));
         let (unguided, guided) = (forward_speed(0.0), forward_speed(40.0));
         eprintln!("{name}: forward speed asked -0.5 m/s: unguided {unguided:.2}, w 40 {guided:.2}");
         assert!(guided < unguided - 0.3 && guided < 0.25, "{name}: unguided {unguided:.2} m/s, w 40 {guided:.2} m/s");
@@ -206,19 +209,13 @@ fn inverse_dynamics_executes_the_plans_next_state() {
         }
     }
 
-    let segment = |vx| JoystickSegment { seconds: 2.0, vx, vy: 0.0, yaw_rate: 0.0 };
-    let tasks = vec![Task { joystick: vec![segment(1.0), segment(-0.5)], ..Task::walk() }; 4];
     let backward_speed = |beta: f32| {
-        let config = ControlConfig { inverse_dynamics: beta, ..ControlConfig::new(2, 30.0, 4.0) };
-        let r = run(&model, &h, &clip, tasks.clone(), &config, "fm", |_| {}).unwrap();
-        let standing: Vec<usize> = (0..4).filter(|&e| !r.fell(e)).collect();
-        assert!(standing.len() >= 3, "{} of 4 stand with inverse-dynamics share {beta}", standing.len());
-        let speeds: Vec<f32> = standing
-            .iter()
-            .flat_map(|&e| (80..r.steps).map(move |k| (e, k)))
-            .map(|(e, k)| r.state(e, k)[offset::ROOT_VEL])
-            .collect();
-        speeds.iter().sum::<f32>() / speeds.len() as f32
+        backward_command(
+            &model,
+            &h,
+            &clip,
+            &ControlConfig { inverse_dynamics: beta, ..ControlConfig::new(2, 30.0, 4.0) },
+        )
     };
     let (plan, inverse) = (backward_speed(0.0), backward_speed(0.5));
     eprintln!("forward speed asked -0.5 m/s at w 30: plan's actions {plan:.2}, inverse dynamics {inverse:.2}");
