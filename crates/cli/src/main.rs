@@ -125,8 +125,8 @@ enum Command {
     },
     /// Fit inverse dynamics (an MLP from a state and the next one to the executed action) to a
     /// dataset's transitions, into <model>/inverse.safetensors, with inverse-log.csv. `run`,
-    /// `eval` and `play` then execute its action for the plan's next state with
-    /// `--action inverse-dynamics`.
+    /// `eval` and `play` then blend its action for the plan's next state into the executed one
+    /// with `--inverse-dynamics BETA`.
     Inverse {
         /// Dataset directories (`flowmimic collect` writes them); their transitions pool.
         #[arg(default_value = "runs/data")]

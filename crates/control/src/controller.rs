@@ -303,21 +303,8 @@ impl<'m> Controller<'m> {
             });
             let mut futures = model.sample(&cond, replan.len(), self.config.nfe, guidance.as_ref(), &mut self.rng);
             let len = traj.len();
-            let beta = self.config.inverse_dynamics;
-            if beta > 0.0 {
-                let inverse = model.inverse.as_ref().expect("checked in Controller::new");
-                let sd = layout.state_dim;
-                let mut pairs = Vec::with_capacity(replan.len() * 2 * sd);
-                for (i, c) in cond.chunks_exact(layout.cond_len()).enumerate() {
-                    pairs.extend_from_slice(&c[c.len() - sd..]);
-                    pairs.extend_from_slice(&futures[i * len + traj.state(1)..][..sd]);
-                }
-                let actions = inverse.actions(&pairs, replan.len());
-                for (future, a) in futures.chunks_exact_mut(len).zip(actions.chunks_exact(NUM_DOFS)) {
-                    for (p, q) in future[traj.action(0)..][..NUM_DOFS].iter_mut().zip(a) {
-                        *p += beta * (q - *p);
-                    }
-                }
+            if self.config.inverse_dynamics > 0.0 {
+                blend_inverse_dynamics(model, self.config.inverse_dynamics, &cond, &mut futures);
             }
             for (i, &e) in replan.iter().enumerate() {
                 self.plans[e] = Some((futures[i * len..(i + 1) * len].to_vec(), 0));
@@ -378,6 +365,28 @@ impl<'m> Controller<'m> {
         }
         self.step += 1;
         Ok(StepOutcome { actions, fell, model_ms, physics_ms })
+    }
+}
+
+/// Moves each plan's first action the share `beta` of the way to what the model's inverse
+/// dynamics reads out of the current state (the last of each conditioning) and the plan's next
+/// state. The model's actions are clean expert actions, nearly independent of the states that
+/// follow them in the data, so a guided next state barely moves them (README, "Inverse
+/// dynamics").
+fn blend_inverse_dynamics(model: &TrajectoryModel, beta: f32, cond: &[f32], futures: &mut [f32]) {
+    let inverse = model.inverse.as_ref().expect("check_sampler refuses a model without one");
+    let (layout, sd) = (model.layout(), model.layout().state_dim);
+    let traj = Layout { horizon: layout.spec.horizon };
+    let mut pairs = Vec::with_capacity(2 * sd * futures.len() / traj.len());
+    for (c, future) in cond.chunks_exact(layout.cond_len()).zip(futures.chunks_exact(traj.len())) {
+        pairs.extend_from_slice(&c[c.len() - sd..]);
+        pairs.extend_from_slice(&future[traj.state(1)..][..sd]);
+    }
+    let actions = inverse.actions(&pairs, futures.len() / traj.len());
+    for (future, a) in futures.chunks_exact_mut(traj.len()).zip(actions.chunks_exact(NUM_DOFS)) {
+        for (p, q) in future[traj.action(0)..][..NUM_DOFS].iter_mut().zip(a) {
+            *p += beta * (q - *p);
+        }
     }
 }
 
