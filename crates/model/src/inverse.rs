@@ -84,6 +84,36 @@ fn transitions(shard: &Shard, state_dim: usize, action_dim: usize) -> (Vec<f32>,
     (inputs, targets, rollouts)
 }
 
+/// Rows of inputs `[s_t, s_{t+1}]` and of the executed actions.
+type Rows = (Vec<f32>, Vec<f32>);
+
+/// Every transition of `datasets` as (inputs, executed actions), in two parts: the rollouts
+/// kept for fitting, and those held out (a fixed share, by the trajectory model's hash).
+fn split(datasets: &[Dataset], state_dim: usize, action_dim: usize, fraction: f64) -> Result<[Rows; 2], ModelError> {
+    let width = 2 * state_dim;
+    let mut parts = [(Vec::new(), Vec::new()), (Vec::new(), Vec::new())];
+    let mut shards = Vec::new();
+    for dataset in datasets {
+        shards.extend(dataset.load_all()?.into_iter().map(|(_, shard)| shard));
+    }
+    for (s, shard) in shards.iter().enumerate() {
+        let (x, y, rollouts) = transitions(shard, state_dim, action_dim);
+        for (k, &r) in rollouts.iter().enumerate() {
+            let (xs, ys) = &mut parts[usize::from(held_out(s, r, fraction))];
+            xs.extend_from_slice(&x[k * width..(k + 1) * width]);
+            ys.extend_from_slice(&y[k * action_dim..(k + 1) * action_dim]);
+        }
+    }
+    if parts[0].1.is_empty() {
+        let dirs: Vec<String> = datasets.iter().map(|d| d.dir.display().to_string()).collect();
+        return Err(ModelError::Invalid(format!(
+            "{}: no transitions to fit inverse dynamics to (episodes of one step?)",
+            dirs.join(", ")
+        )));
+    }
+    Ok(parts)
+}
+
 /// Per-column mean and standard deviation (floored at 1e-3) of `rows` rows.
 fn moments(x: &[f32], width: usize) -> (Vec<f32>, Vec<f32>) {
     let n = (x.len() / width).max(1) as f64;
@@ -139,27 +169,8 @@ impl InverseDynamics {
         config.validate().map_err(ModelError::Invalid)?;
         let width = 2 * state_dim;
         let mut rng = StdRng::seed_from_u64(config.seed);
-        let (mut train_x, mut train_y, mut val_x, mut val_y) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        let mut shards = Vec::new();
-        for dataset in datasets {
-            shards.extend(dataset.load_all()?.into_iter().map(|(_, shard)| shard));
-        }
-        for (s, shard) in shards.iter().enumerate() {
-            let (x, y, rollouts) = transitions(shard, state_dim, action_dim);
-            for (k, &r) in rollouts.iter().enumerate() {
-                let held = held_out(s, r, config.validation_fraction);
-                let (xs, ys) = if held { (&mut val_x, &mut val_y) } else { (&mut train_x, &mut train_y) };
-                xs.extend_from_slice(&x[k * width..(k + 1) * width]);
-                ys.extend_from_slice(&y[k * action_dim..(k + 1) * action_dim]);
-            }
-        }
-        if train_y.is_empty() {
-            let dirs: Vec<String> = datasets.iter().map(|d| d.dir.display().to_string()).collect();
-            return Err(ModelError::Invalid(format!(
-                "{}: no transitions to fit inverse dynamics to (episodes of one step?)",
-                dirs.join(", ")
-            )));
-        }
+        let [(mut train_x, mut train_y), (mut val_x, mut val_y)] =
+            split(datasets, state_dim, action_dim, config.validation_fraction)?;
         let input_norm = moments(&train_x, width);
         let output_norm = moments(&train_y, action_dim);
         for (x, y) in [(&mut train_x, &mut train_y), (&mut val_x, &mut val_y)] {
