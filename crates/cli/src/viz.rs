@@ -12,7 +12,7 @@ use std::sync::Arc;
 /// A clip or one environment of a rollout, told apart by the file's `format` metadata.
 enum Source {
     Clip(Clip),
-    Rollout(Rollout, usize),
+    Rollout(Box<Rollout>, usize),
 }
 
 fn open(humanoid: &Arc<Humanoid>, file: &Path, env: usize) -> Result<(Source, String)> {
@@ -26,7 +26,7 @@ fn open(humanoid: &Arc<Humanoid>, file: &Path, env: usize) -> Result<(Source, St
     if env >= rollout.envs {
         bail!("{}: --env {env}, but the rollout has {} environments", file.display(), rollout.envs);
     }
-    Ok((Source::Rollout(rollout, env), stem))
+    Ok((Source::Rollout(Box::new(rollout), env), stem))
 }
 
 pub fn render(

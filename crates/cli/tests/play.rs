@@ -120,6 +120,10 @@ fn live_play_speaks_its_protocol_and_survives_bad_clients() {
     socket.send(Message::text(r#"{"type":"drive","vx":0.8,"vy":0,"yaw_rate":0.3,"seq":42}"#)).unwrap();
     let applied = (0..10).map(|_| next_of(&mut socket, "frame")).find(|f| f["applied"] == 42).expect("applied");
     assert_eq!(applied["command"], json!([0.8, 0.0, 0.3]), "{applied}");
+    // This model has no inverse dynamics: the page is told, and a share for it is refused.
+    assert_eq!(hello["inverse_dynamics"], json!(null), "{hello}");
+    socket.send(Message::text(r#"{"type":"sampler","scale":30,"nfe":2,"inverse_dynamics":0.25}"#)).unwrap();
+    assert!(next_of(&mut socket, "error")["message"].as_str().unwrap().contains("no inverse dynamics"));
     // Recording writes a rollout that the other commands read.
     socket.send(Message::text(r#"{"type":"record"}"#)).unwrap();
     (0..10).for_each(|_| drop(next_of(&mut socket, "frame")));

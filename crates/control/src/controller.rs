@@ -423,6 +423,7 @@ pub fn run(
             guidance_steps: config.guidance_steps(),
             gradient: config.gradient,
             adaptive: config.adaptive,
+            inverse_dynamics: config.inverse_dynamics,
             tasks: tasks.clone(),
             seed: config.seed,
             start: format!("clip '{}'", clip.name),

@@ -44,6 +44,9 @@ pub struct RolloutInfo {
     /// Adaptive guidance's reference error (`None`: the fixed scale).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub adaptive: Option<crate::Adaptive>,
+    /// Share of the executed action taken from inverse dynamics (files before it: none).
+    #[serde(default)]
+    pub inverse_dynamics: f32,
     pub tasks: Vec<Task>,
     pub seed: u64,
     pub start: String,

@@ -21,6 +21,7 @@ fn rollout(steps: usize, yaw_rate: f64, turn: f64, fall: usize) -> Rollout {
             guidance_steps: (0, 1),
             gradient: Default::default(),
             adaptive: None,
+            inverse_dynamics: 0.0,
             tasks: vec![task.clone()],
             seed: 0,
             start: "test".into(),

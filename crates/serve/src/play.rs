@@ -13,12 +13,12 @@
 //! | `{"type":"drive","vx":1,"vy":0,"yaw_rate":0,"seq":7}` | joystick: m/s in the character frame (x forward, y left), rad/s, all zero for none; `seq` is echoed as `applied` |
 //! | `{"type":"waypoint","at":[x,y]}` / `"at":null` | walk to a world point / stop |
 //! | `{"type":"hand","hand":"right","target":[x,y,z]}` / `"target":null` | reach / stop |
-//! | `{"type":"sampler","scale":10,"nfe":5}` | guidance scale and solver steps |
+//! | `{"type":"sampler","scale":10,"nfe":5}` | guidance scale and solver steps; `"inverse_dynamics":0.2` also sets the share of inverse dynamics in the executed action (a model with one) |
 //! | `{"type":"push"}`, `{"type":"reset"}`, `{"type":"record"}` | a random kick of the kick protocol's size; restart; start or stop recording |
 //!
 //! | from the server | meaning |
 //! |---|---|
-//! | `hello` | model, body names and parents, control rate, horizon, sampler |
+//! | `hello` | model, body names and parents, control rate, horizon, sampler (`inverse_dynamics` null for a model without it) |
 //! | `frame` | every control step: body positions (world), predicted pelvis path, command in force and the `seq` it came with, achieved velocity, milliseconds of model and physics, achieved rate, fall, recording |
 //! | `notice` | a recording was written, or the controller stopped (and why) |
 //! | `error` | the last message was refused, and why (the session goes on) |
@@ -89,6 +89,9 @@ pub enum Command {
     Sampler {
         scale: f32,
         nfe: usize,
+        /// `None`: unchanged.
+        #[serde(default)]
+        inverse_dynamics: Option<f32>,
     },
     Push,
     Reset,
@@ -104,6 +107,8 @@ struct Inputs {
     reach: Option<(Hand, [f64; 3])>,
     scale: f32,
     nfe: usize,
+    /// Share of inverse dynamics in the executed action; `None`: the model has none.
+    inverse_dynamics: Option<f32>,
     push: bool,
     reset: bool,
     record: bool,
@@ -132,7 +137,7 @@ impl Inputs {
             Command::Drive { vx, vy, yaw_rate, seq } => (next.drive, next.seq) = ([vx, vy, yaw_rate], seq),
             Command::Waypoint { at } => next.waypoint = at,
             Command::Hand { hand, target } => next.reach = target.map(|t| (hand, t)),
-            Command::Sampler { scale, nfe } => {
+            Command::Sampler { scale, nfe, inverse_dynamics } => {
                 if !(scale.is_finite() && (0.0..=1000.0).contains(&scale)) {
                     return Err(format!("guidance scale must be 0-1000, not {scale}"));
                 }
@@ -140,6 +145,15 @@ impl Inputs {
                     return Err(format!("NFE must be 1-50, not {nfe}"));
                 }
                 (next.scale, next.nfe) = (scale, nfe);
+                if let Some(beta) = inverse_dynamics {
+                    if next.inverse_dynamics.is_none() {
+                        return Err("this model has no inverse dynamics (`flowmimic inverse`)".into());
+                    }
+                    if !(0.0..=1.0).contains(&beta) {
+                        return Err(format!("inverse-dynamics share must be 0-1, not {beta}"));
+                    }
+                    next.inverse_dynamics = Some(beta);
+                }
             }
             Command::Push => next.push = true,
             Command::Reset => next.reset = true,
@@ -163,6 +177,7 @@ enum Outgoing {
         horizon: usize,
         scale: f32,
         nfe: usize,
+        inverse_dynamics: Option<f32>,
     },
     Frame(Frame),
     Notice {
@@ -193,6 +208,7 @@ struct Frame {
     velocity: [f32; 3],
     scale: f32,
     nfe: usize,
+    inverse_dynamics: Option<f32>,
     model_ms: f32,
     physics_ms: f32,
     /// Control steps per second of wall time, over the last second.
@@ -232,6 +248,7 @@ impl Session {
             reach: None,
             scale: config.control.guidance_scale,
             nfe: config.control.nfe,
+            inverse_dynamics: model.inverse.is_some().then_some(config.control.inverse_dynamics),
             push: false,
             reset: false,
             record: false,
@@ -244,6 +261,7 @@ impl Session {
             horizon: model.layout().spec.horizon,
             scale: inputs.scale,
             nfe: inputs.nfe,
+            inverse_dynamics: inputs.inverse_dynamics,
         });
         let inputs = Arc::new(Mutex::new(inputs));
         let (frame_tx, frames) = watch::channel(Arc::from(""));
@@ -362,6 +380,7 @@ impl Simulation<'_> {
             };
             let mut sampler = controller.config().clone();
             (sampler.guidance_scale, sampler.nfe) = (inputs.scale, inputs.nfe);
+            sampler.inverse_dynamics = inputs.inverse_dynamics.unwrap_or(0.0);
             if sampler != *controller.config() {
                 controller.set_config(sampler).expect("validated when received");
             }
@@ -454,6 +473,7 @@ impl Simulation<'_> {
                 velocity: [state[offset::ROOT_VEL], state[offset::ROOT_VEL + 1], yaw_rate as f32],
                 scale: inputs.scale,
                 nfe: inputs.nfe,
+                inverse_dynamics: inputs.inverse_dynamics,
                 model_ms,
                 physics_ms,
                 rate: step_starts.len() as f32,
@@ -487,6 +507,7 @@ impl Simulation<'_> {
             guidance_steps: c.guidance_steps(),
             gradient: c.gradient,
             adaptive: c.adaptive,
+            inverse_dynamics: c.inverse_dynamics,
             tasks: vec![r.task],
             seed: c.seed,
             start: format!("clip '{}', live play", self.clip.name),
@@ -525,6 +546,7 @@ mod tests {
             reach: None,
             scale: 10.0,
             nfe: 5,
+            inverse_dynamics: Some(0.0),
             push: false,
             reset: false,
             record: false,
@@ -545,12 +567,16 @@ mod tests {
         apply(&mut i, r#"{"type":"waypoint","at":[3,-1]}"#).unwrap();
         apply(&mut i, r#"{"type":"push"}"#).unwrap();
         assert!(i.push && i.task().waypoint == Some([3.0, -1.0]));
+        apply(&mut i, r#"{"type":"sampler","scale":50,"nfe":2,"inverse_dynamics":0.2}"#).unwrap();
+        apply(&mut i, r#"{"type":"sampler","scale":40,"nfe":2}"#).unwrap();
+        assert_eq!((i.scale, i.inverse_dynamics), (40.0, Some(0.2)), "a sampler message without the share keeps it");
         let before = i.clone();
         for (bad, why) in [
             (r#"{"type":"drive","vx":9,"vy":0,"yaw_rate":0}"#, "joystick speed"),
             (r#"{"type":"hand","hand":"right","target":[1,0,7]}"#, "height"),
             (r#"{"type":"sampler","scale":-1,"nfe":5}"#, "guidance scale"),
             (r#"{"type":"sampler","scale":1,"nfe":0}"#, "NFE"),
+            (r#"{"type":"sampler","scale":1,"nfe":2,"inverse_dynamics":1.5}"#, "inverse-dynamics share"),
             (r#"{"type":"fly"}"#, "unknown variant"),
             (r#"{"type":"drive","vx":"fast"}"#, "invalid type"),
         ] {
@@ -558,5 +584,8 @@ mod tests {
             assert!(e.contains(why), "{bad}: {e}");
         }
         assert_eq!(format!("{i:?}"), format!("{before:?}"), "a refused message changed nothing");
+        let mut without = Inputs { inverse_dynamics: None, ..inputs() };
+        let e = apply(&mut without, r#"{"type":"sampler","scale":1,"nfe":2,"inverse_dynamics":0.2}"#).unwrap_err();
+        assert!(e.contains("no inverse dynamics"), "{e}");
     }
 }
