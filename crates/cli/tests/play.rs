@@ -124,7 +124,9 @@ fn live_play_speaks_its_protocol_and_survives_bad_clients() {
     assert_eq!(hello["inverse_dynamics"], json!(null), "{hello}");
     socket.send(Message::text(r#"{"type":"sampler","scale":30,"nfe":2,"inverse_dynamics":0.25}"#)).unwrap();
     assert!(next_of(&mut socket, "error")["message"].as_str().unwrap().contains("no inverse dynamics"));
-    // Recording writes a rollout that the other commands read.
+    // Recording writes a rollout that the other commands read, with the sampler the page set.
+    socket.send(Message::text(r#"{"type":"sampler","scale":12,"nfe":3}"#)).unwrap();
+    (0..3).for_each(|_| drop(next_of(&mut socket, "frame")));
     socket.send(Message::text(r#"{"type":"record"}"#)).unwrap();
     (0..10).for_each(|_| drop(next_of(&mut socket, "frame")));
     socket.send(Message::text(r#"{"type":"record"}"#)).unwrap();
@@ -133,6 +135,7 @@ fn live_play_speaks_its_protocol_and_survives_bad_clients() {
     assert!(path.ends_with(".rollout.safetensors"), "{notice}");
     let rollout = flowmimic_control::Rollout::load(&dir.join(&path)).unwrap();
     assert!(rollout.envs == 1 && rollout.steps >= 9 && rollout.survived == [rollout.steps], "{notice}");
+    assert_eq!((rollout.info.guidance_scale, rollout.info.nfe), (12.0, 3), "{notice}");
     // A client past the transport limit is dropped; the session serves the next one.
     socket.send(Message::text("y".repeat(100_000))).ok();
     drop(socket);

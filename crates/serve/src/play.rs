@@ -347,6 +347,8 @@ struct Simulation<'m> {
 struct Recording {
     started: SystemTime,
     task: Task,
+    /// The sampler in force when recording started (the page may change it later).
+    sampler: ControlConfig,
     rows: Vec<Row>,
     actions: Vec<(Vec<f32>, [f32; flowmimic_control::task::COMMAND_DIM])>,
     model_ms: Vec<f32>,
@@ -404,6 +406,7 @@ impl Simulation<'_> {
                         recording = Some(Recording {
                             started: SystemTime::now(),
                             task: inputs.task(),
+                            sampler: controller.config().clone(),
                             rows: vec![Row::of(controller.env(0))],
                             actions: Vec::new(),
                             model_ms: Vec::new(),
@@ -497,7 +500,7 @@ impl Simulation<'_> {
         if steps == 0 {
             return self.notice("nothing recorded: no control step ran".into());
         }
-        let c = &self.config.control;
+        let c = &r.sampler;
         let info = RolloutInfo {
             model: self.config.model_name.clone(),
             objective: self.model.objective.name().to_string(),
