@@ -414,22 +414,7 @@ pub fn run(
     let envs_n = tasks.len();
     let steps = (config.seconds * CONTROL_HZ).round() as usize;
     let mut out = Rollout::new(
-        RolloutInfo {
-            model: model_name.to_string(),
-            objective: model.objective.name().to_string(),
-            nfe: config.nfe,
-            horizon: model.layout().spec.horizon,
-            guidance_scale: config.guidance_scale,
-            guidance_steps: config.guidance_steps(),
-            gradient: config.gradient,
-            adaptive: config.adaptive,
-            inverse_dynamics: config.inverse_dynamics,
-            tasks: tasks.clone(),
-            seed: config.seed,
-            start: format!("clip '{}'", clip.name),
-            kick_every: config.kick_every,
-            kick_max: config.kick_max,
-        },
+        RolloutInfo::new(model_name, model, config, tasks.clone(), format!("clip '{}'", clip.name)),
         envs_n,
         steps,
         humanoid.nq(),

@@ -55,6 +55,35 @@ pub struct RolloutInfo {
     pub kick_max: f64,
 }
 
+impl RolloutInfo {
+    /// The record of `model` (labelled `model_name`) driving `tasks` under `config`, started
+    /// from `start`.
+    pub fn new(
+        model_name: &str,
+        model: &flowmimic_model::TrajectoryModel,
+        config: &crate::ControlConfig,
+        tasks: Vec<Task>,
+        start: String,
+    ) -> Self {
+        Self {
+            model: model_name.to_string(),
+            objective: model.objective.name().to_string(),
+            nfe: config.nfe,
+            horizon: model.layout().spec.horizon,
+            guidance_scale: config.guidance_scale,
+            guidance_steps: config.guidance_steps(),
+            gradient: config.gradient,
+            adaptive: config.adaptive,
+            inverse_dynamics: config.inverse_dynamics,
+            tasks,
+            seed: config.seed,
+            start,
+            kick_every: config.kick_every,
+            kick_max: config.kick_max,
+        }
+    }
+}
+
 /// One environment's record of one step, as a rollout stores it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Row {

@@ -500,23 +500,8 @@ impl Simulation<'_> {
         if steps == 0 {
             return self.notice("nothing recorded: no control step ran".into());
         }
-        let c = &r.sampler;
-        let info = RolloutInfo {
-            model: self.config.model_name.clone(),
-            objective: self.model.objective.name().to_string(),
-            nfe: c.nfe,
-            horizon: self.model.layout().spec.horizon,
-            guidance_scale: c.guidance_scale,
-            guidance_steps: c.guidance_steps(),
-            gradient: c.gradient,
-            adaptive: c.adaptive,
-            inverse_dynamics: c.inverse_dynamics,
-            tasks: vec![r.task],
-            seed: c.seed,
-            start: format!("clip '{}', live play", self.clip.name),
-            kick_every: 0.0,
-            kick_max: 0.0,
-        };
+        let start = format!("clip '{}', live play", self.clip.name);
+        let info = RolloutInfo::new(&self.config.model_name, self.model, &r.sampler, vec![r.task], start);
         let mut rollout = Rollout::new(info, 1, steps, self.humanoid.nq());
         for (k, row) in r.rows.iter().enumerate() {
             rollout.put_row(0, k, row);
