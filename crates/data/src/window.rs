@@ -99,38 +99,59 @@ pub struct Stats {
     pub windows: usize,
 }
 
+/// Running per-column sums of rows, for their mean and standard deviation.
+#[derive(Clone, Debug)]
+pub struct Moments {
+    sum: Vec<f64>,
+    squares: Vec<f64>,
+    rows: usize,
+}
+
+impl Moments {
+    pub fn new(width: usize) -> Self {
+        Self { sum: vec![0.0; width], squares: vec![0.0; width], rows: 0 }
+    }
+
+    /// Adds every row of `rows` (rows of this width, one after another).
+    pub fn add(&mut self, rows: &[f32]) {
+        for row in rows.chunks_exact(self.sum.len()) {
+            for ((s, q), &x) in self.sum.iter_mut().zip(&mut self.squares).zip(row) {
+                *s += f64::from(x);
+                *q += f64::from(x) * f64::from(x);
+            }
+            self.rows += 1;
+        }
+    }
+
+    /// Mean and standard deviation of each column, the deviation floored at 1e-3 so that a
+    /// constant column does not divide by zero.
+    pub fn finish(&self) -> (Vec<f32>, Vec<f32>) {
+        let n = self.rows.max(1) as f64;
+        self.sum
+            .iter()
+            .zip(&self.squares)
+            .map(|(s, q)| {
+                let m = s / n;
+                (m as f32, ((q / n - m * m).max(0.0).sqrt().max(1e-3)) as f32)
+            })
+            .unzip()
+    }
+}
+
 impl Stats {
     pub fn compute<'a>(spec: WindowSpec, shards: impl Iterator<Item = &'a Shard>) -> Self {
-        let (ns, na) = (spec.states() * STATE_DIM, spec.actions() * NUM_DOFS);
-        let (mut s1, mut s2, mut a1, mut a2) = (vec![0f64; ns], vec![0f64; ns], vec![0f64; na], vec![0f64; na]);
-        let mut count = 0usize;
+        let mut states = Moments::new(spec.states() * STATE_DIM);
+        let mut actions = Moments::new(spec.actions() * NUM_DOFS);
         for shard in shards {
             for t in window_starts(shard, spec) {
                 let w = window(shard, spec, t);
-                for (i, &x) in w.states.iter().enumerate() {
-                    s1[i] += f64::from(x);
-                    s2[i] += f64::from(x) * f64::from(x);
-                }
-                for (i, &x) in w.actions.iter().enumerate() {
-                    a1[i] += f64::from(x);
-                    a2[i] += f64::from(x) * f64::from(x);
-                }
-                count += 1;
+                states.add(&w.states);
+                actions.add(&w.actions);
             }
         }
-        let n = count.max(1) as f64;
-        let finish = |sum: &[f64], sq: &[f64]| -> (Vec<f32>, Vec<f32>) {
-            sum.iter()
-                .zip(sq)
-                .map(|(s, q)| {
-                    let m = s / n;
-                    (m as f32, ((q / n - m * m).max(0.0).sqrt().max(1e-3)) as f32)
-                })
-                .unzip()
-        };
-        let (state_mean, state_std) = finish(&s1, &s2);
-        let (action_mean, action_std) = finish(&a1, &a2);
-        Self { spec, state_mean, state_std, action_mean, action_std, windows: count }
+        let (state_mean, state_std) = states.finish();
+        let (action_mean, action_std) = actions.finish();
+        Self { spec, state_mean, state_std, action_mean, action_std, windows: states.rows }
     }
 }
 

@@ -11,7 +11,7 @@
 use crate::ModelError;
 use crate::train::held_out;
 use flowmimic_data::window::reexpress;
-use flowmimic_data::{Dataset, Shard};
+use flowmimic_data::{Dataset, Moments, Shard};
 use flowmimic_io::tensors::{self, TensorFile};
 use flowmimic_nn::{Adam, Mlp};
 use rand::SeedableRng;
@@ -114,22 +114,6 @@ fn split(datasets: &[Dataset], state_dim: usize, action_dim: usize, fraction: f6
     Ok(parts)
 }
 
-/// Per-column mean and standard deviation (floored at 1e-3) of `rows` rows.
-fn moments(x: &[f32], width: usize) -> (Vec<f32>, Vec<f32>) {
-    let n = (x.len() / width).max(1) as f64;
-    let mut mean = vec![0.0f64; width];
-    let mut sq = vec![0.0f64; width];
-    for row in x.chunks_exact(width) {
-        for (j, &v) in row.iter().enumerate() {
-            mean[j] += f64::from(v);
-            sq[j] += f64::from(v) * f64::from(v);
-        }
-    }
-    let mean: Vec<f64> = mean.iter().map(|m| m / n).collect();
-    let std = sq.iter().zip(&mean).map(|(s, m)| ((s / n - m * m).max(0.0).sqrt().max(1e-3)) as f32).collect();
-    (mean.iter().map(|&m| m as f32).collect(), std)
-}
-
 fn standardise(x: &mut [f32], (mean, std): &(Vec<f32>, Vec<f32>)) {
     for row in x.chunks_exact_mut(mean.len()) {
         row.iter_mut().zip(mean.iter().zip(std)).for_each(|(v, (m, s))| *v = (*v - m) / s);
@@ -171,6 +155,11 @@ impl InverseDynamics {
         let mut rng = StdRng::seed_from_u64(config.seed);
         let [(mut train_x, mut train_y), (mut val_x, mut val_y)] =
             split(datasets, state_dim, action_dim, config.validation_fraction)?;
+        let moments = |rows: &[f32], width: usize| {
+            let mut m = Moments::new(width);
+            m.add(rows);
+            m.finish()
+        };
         let input_norm = moments(&train_x, width);
         let output_norm = moments(&train_y, action_dim);
         for (x, y) in [(&mut train_x, &mut train_y), (&mut val_x, &mut val_y)] {
