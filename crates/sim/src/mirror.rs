@@ -8,6 +8,7 @@
 use crate::skeleton::hinge_names;
 use crate::state::state_feature_names;
 use std::ops::Neg;
+use std::sync::OnceLock;
 
 /// A mirror of one vector layout: entry `i` of the image is entry `source[i]`, negated where
 /// `flip[i]`.
@@ -64,9 +65,11 @@ impl Mirror {
 
     /// The root's `flipped` entries negated, the hinges from `hinges` on as the actions are.
     fn root_and_hinges(x: &[f64], flipped: [usize; 3], hinges: usize) -> Vec<f64> {
+        // Built from the names once, not for every frame of a clip.
+        static ACTION: OnceLock<Mirror> = OnceLock::new();
         let mut image = x.to_vec();
         flipped.iter().for_each(|&i| image[i] = -x[i]);
-        image[hinges..].copy_from_slice(&Self::action().apply(&x[hinges..]));
+        image[hinges..].copy_from_slice(&ACTION.get_or_init(Self::action).apply(&x[hinges..]));
         image
     }
 
