@@ -56,16 +56,15 @@ impl Study<'_> {
     }
 
     fn point(&self, nfe: usize, scale: f32) -> Point {
-        let (guidance_steps, adaptive, inverse_dynamics) = (self.guidance_steps, self.adaptive, self.inverse_dynamics);
         Point {
             nfe,
             scale,
             execute: self.execute,
             seed: self.seed,
             gradient: self.gradient,
-            guidance_steps,
-            adaptive,
-            inverse_dynamics,
+            guidance_steps: self.guidance_steps,
+            adaptive: self.adaptive,
+            inverse_dynamics: self.inverse_dynamics,
         }
     }
 
