@@ -1,9 +1,10 @@
-//! `flowmimic demo`: the shipped guidance model walks on a joystick schedule, then reaches with
-//! its right hand while walking; rollouts, plots and metrics in one command.
+//! `flowmimic demo`: the shipped guidance model walks on a joystick schedule (forward, turn
+//! left, turn right, backward), then reaches with its right hand while walking; rollouts, plots
+//! and metrics in one command.
 
 use crate::run::{load_model, start_clip};
 use anyhow::Result;
-use flowmimic_control::{ControlConfig, Hand, Rollout, Task};
+use flowmimic_control::{ControlConfig, Hand, JoystickSegment, Rollout, Task};
 use flowmimic_eval::protocols::{SEGMENT_SETTLE, joystick_trial, yaw_rates};
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::skeleton::body;
@@ -14,19 +15,38 @@ use std::sync::Arc;
 
 /// Guidance scales of the demo: the joystick's and the reach's (see the README's Results for
 /// the sweeps they come from).
-const JOYSTICK_SCALE: f32 = 30.0;
+const JOYSTICK_SCALE: f32 = 40.0;
 const REACH_SCALE: f32 = 30.0;
 
-pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -> Result<()> {
+/// Forward, turn left, turn right, then backward, the walk the joystick protocol asks in
+/// another order, with longer turns and backward walk: walking forward again after walking
+/// backward toppled 5 of 8 walkers at w 30 with inverse dynamics, and in this order 8 of 8 stand
+/// at w 40 (README, "Holding the joystick's heading").
+fn schedule() -> Task {
+    let seg = |seconds, vx, yaw_rate| JoystickSegment { seconds, vx, vy: 0.0, yaw_rate };
+    Task {
+        joystick: vec![seg(3.0, 1.0, 0.0), seg(4.0, 0.8, 0.6), seg(4.0, 0.8, -0.6), seg(5.0, -0.5, 0.0)],
+        ..Task::walk()
+    }
+}
+
+pub fn run(model_dir: &Path, out: &Path, nfe: usize, inverse_dynamics: f32, humanoid: &Arc<Humanoid>) -> Result<()> {
     let model = load_model(model_dir)?;
     let clip = start_clip(humanoid, None)?;
-    let control = |seconds: f64, scale: f32| ControlConfig::new(nfe, scale, seconds);
+    let control =
+        |seconds: f64, scale: f32| ControlConfig { inverse_dynamics, ..ControlConfig::new(nfe, scale, seconds) };
     let name = model_dir.display().to_string();
-    eprintln!("{} model from {name} (H {}), NFE {nfe}", model.objective.label(), model.layout().spec.horizon);
+    eprintln!(
+        "{} model from {name} (H {}), NFE {nfe}, inverse dynamics {inverse_dynamics}",
+        model.objective.label(),
+        model.layout().spec.horizon
+    );
 
-    // 1. Joystick: forward, backward, turn left, turn right, 3 s each.
-    let task = Task::joystick_eval();
-    let r = flowmimic_control::run(&model, humanoid, &clip, vec![task], &control(12.0, JOYSTICK_SCALE), &name, |_| {})?;
+    // 1. Joystick: forward, turn left, turn right, backward.
+    let task = schedule();
+    let seconds = task.joystick.iter().map(|s| s.seconds).sum();
+    let r =
+        flowmimic_control::run(&model, humanoid, &clip, vec![task], &control(seconds, JOYSTICK_SCALE), &name, |_| {})?;
     r.save(&out.join("joystick.rollout.safetensors"))?;
     let t = joystick_trial(&r, 0);
     let time = |k: usize| k as f64 / CONTROL_HZ;
@@ -52,7 +72,7 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, humanoid: &Arc<Humanoid>) -
         .series(Series::line("achieved", heading(&|k| rates[k])))
         .save(&out.join("joystick_heading"))?;
     println!(
-        "joystick (forward, backward, turn left, turn right; w {JOYSTICK_SCALE}): velocity RMSE {:.2} m/s, yaw-rate RMSE {:.2} rad/s, {}",
+        "joystick (forward, turn left, turn right, backward; w {JOYSTICK_SCALE}): velocity RMSE {:.2} m/s, yaw-rate RMSE {:.2} rad/s, {}",
         t.velocity_rmse,
         t.yaw_rate_rmse,
         fell(&r)

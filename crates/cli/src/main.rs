@@ -63,6 +63,10 @@ enum Command {
         /// Network evaluations per control step (the guidance model steers best at 2).
         #[arg(long, default_value_t = 2)]
         nfe: usize,
+        /// Share of each executed action read by the model's inverse dynamics out of the plan's
+        /// next state (see `run --inverse-dynamics`); 0 for a model without `inverse.safetensors`.
+        #[arg(long, value_name = "BETA", default_value_t = 0.2)]
+        inverse_dynamics: f32,
     },
     /// The whole job on the preset: clips -> PPO experts -> noisy rollouts -> FM and DDPM
     /// models -> quick evaluations and report. Stages already done for the same settings are
@@ -293,7 +297,9 @@ fn run(cli: Cli) -> Result<()> {
             data::run_collect(&Humanoid::new(config.sim)?, runs, &clip, out, config.collect.clone())?
         }
         Command::Dataset(cmd) => data::run_dataset(cmd)?,
-        Command::Demo { model, out, nfe } => demo::run(&model, &out, nfe, &Humanoid::new(config.sim)?)?,
+        Command::Demo { model, out, nfe, inverse_dynamics } => {
+            demo::run(&model, &out, nfe, inverse_dynamics, &Humanoid::new(config.sim)?)?
+        }
         Command::Pipeline { out, clip } => pipeline::run(&config, &cli.settings.preset, &out, &clip)?,
         Command::Render { file, out, env, width, height, fps } => {
             viz::render(&Humanoid::new(config.sim)?, &file, out, env, (width, height), fps)?

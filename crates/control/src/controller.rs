@@ -5,9 +5,9 @@
 use crate::adapt::{Adaptive, Recent};
 use crate::history::History;
 use crate::rollout::{Rollout, RolloutInfo};
-use crate::task::Task;
+use crate::task::{HeadingHold, Task};
 use crate::{ControlError, Layout};
-use flowmimic_geom::CharFrame;
+use flowmimic_geom::{CharFrame, heading};
 use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_sim::{CONTROL_HZ, Env, Humanoid, NUM_DOFS};
@@ -130,6 +130,8 @@ pub struct Controller<'m> {
     histories: Vec<History>,
     /// Each environment's last half second of pelvis poses, for adaptive guidance.
     recent: Vec<Recent>,
+    /// Each environment's joystick heading.
+    holds: Vec<HeadingHold>,
     /// Each environment's current plan (physical units) and how many of its actions ran.
     plans: Vec<Option<(Vec<f32>, usize)>>,
     alive: Vec<bool>,
@@ -204,6 +206,7 @@ impl<'m> Controller<'m> {
             envs: (0..envs).map(|_| humanoid.env()).collect(),
             histories: (0..envs).map(|_| History::new(model.layout().spec)).collect(),
             recent: vec![Recent::default(); envs],
+            holds: vec![HeadingHold::default(); envs],
             plans: vec![None; envs],
             alive: vec![true; envs],
             rng: StdRng::seed_from_u64(config.seed),
@@ -228,6 +231,7 @@ impl<'m> Controller<'m> {
         start_from_clip(&mut self.envs[e], &mut self.histories[e], clip, frame, n_hist)?;
         self.recent[e] = Recent::default();
         self.recent[e].observe(&self.envs[e].bodies());
+        self.holds[e] = HeadingHold::default();
         self.plans[e] = None;
         self.alive[e] = true;
         Ok(())
@@ -286,7 +290,8 @@ impl<'m> Controller<'m> {
                 let (states, actions) = self.histories[e].conditioning();
                 cond.extend(layout.interleave(&states, &actions));
                 let b = self.envs[e].bodies();
-                let cost = tasks[e].cost(traj, time, &CharFrame::from_root(b.pos[0], b.rot[0]))?;
+                let lag = self.holds[e].lag(tasks[e].joystick_at(time), time, heading(b.rot[0]));
+                let cost = tasks[e].cost(traj, time, &CharFrame::from_root(b.pos[0], b.rot[0]), lag)?;
                 let factor =
                     self.config.adaptive.map_or(1.0, |a| a.factor(tasks[e].executed_error(time, &self.recent[e])));
                 costs.push(cost.map(|c| c.scaled(factor)));

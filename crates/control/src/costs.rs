@@ -103,9 +103,12 @@ pub struct Heading {
 }
 
 impl Heading {
+    /// The fastest turn asked (rad/s).
+    pub const MAX_RATE: f64 = 3.0;
+
     pub fn new(layout: Layout, rate: f64) -> Result<Self, ControlError> {
         finite("turn rate", &[rate])?;
-        if rate.abs() > 3.0 {
+        if rate.abs() > Self::MAX_RATE {
             return Err(ControlError::BadCommand { what: "turn rate (max 3 rad/s)", value: rate });
         }
         Ok(Self { layout, rate: rate as f32 })

@@ -23,7 +23,7 @@ pub use costs::{Cost, Heading, Joystick, Pursuit, Reach, Sum};
 pub use history::History;
 pub use layout::Layout;
 pub use rollout::{Rollout, RolloutInfo, Row};
-pub use task::{Hand, JoystickSegment, Task};
+pub use task::{Hand, HeadingHold, JoystickSegment, Task};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ControlError {

@@ -231,3 +231,34 @@ fn inverse_dynamics_executes_the_plans_next_state() {
     let err = refused(&model, &ControlConfig { inverse_dynamics: 1.5, ..config });
     assert!(err.contains("inverse-dynamics share"), "{err}");
 }
+
+/// The joystick's heading is held ([`flowmimic_control::HeadingHold`]): the shipped guidance
+/// model walks straight when told to (unguided it circles left; with a turn asked from its
+/// current heading alone, told to walk straight, it circled at +0.28 rad/s here), and turns both
+/// ways at about the commanded rate (it turned right at -0.13 rad/s of -0.6; measured here with
+/// the heading held: +0.05, +0.65 and -0.55).
+#[test]
+fn the_shipped_guidance_model_holds_its_heading_and_turns_both_ways() {
+    let h = Humanoid::new(SimConfig::default()).unwrap();
+    let clip = flowmimic_motion::straight_walk(&h).unwrap();
+    let model = shipped("fm");
+    let seg = |vx, yaw_rate| JoystickSegment { seconds: 3.0, vx, vy: 0.0, yaw_rate };
+    let tasks = vec![Task { joystick: vec![seg(1.0, 0.0), seg(0.8, 0.6), seg(0.8, -0.6)], ..Task::walk() }; 4];
+    let r = run(&model, &h, &clip, tasks, &ControlConfig::new(2, 30.0, 9.0), "fm", |_| {}).unwrap();
+    let heading = |e: usize, k: usize| {
+        let q = r.qpos(e, k);
+        flowmimic_geom::heading(flowmimic_geom::quat_from_wxyz([q[3], q[4], q[5], q[6]].map(f64::from)))
+    };
+    // Each segment's mean yaw rate from its second second on, over the environments standing.
+    let rate = |segment: usize| {
+        let (from, to) = (segment * 90 + 30, segment * 90 + 90);
+        let standing: Vec<usize> = (0..4).filter(|&e| r.survived[e] >= to).collect();
+        assert!(standing.len() >= 3, "{} of 4 stand in segment {segment}", standing.len());
+        let turned: f64 =
+            standing.iter().map(|&e| flowmimic_geom::wrap_angle(heading(e, to) - heading(e, from))).sum::<f64>();
+        turned / standing.len() as f64 / 2.0
+    };
+    let (straight, left, right) = (rate(0), rate(1), rate(2));
+    eprintln!("yaw rate (rad/s) asked 0 / +0.6 / -0.6: {straight:+.2} / {left:+.2} / {right:+.2}");
+    assert!(straight.abs() < 0.2 && left > 0.4 && right < -0.4, "{straight:+.2} / {left:+.2} / {right:+.2}");
+}

@@ -141,6 +141,46 @@ fn turning_is_asked_step_by_step_and_far_targets_still_pull() {
     assert!(Reach::world(layout, body::R_HAND, [6.0, 0.0, 3.5], &frame).is_err(), "heights are still checked");
 }
 
+/// The joystick's heading is held from when its turn rate was set: a walker that turned less
+/// than asked (or drifted while asked to go straight) is behind it by what it missed, so the
+/// next plan is asked to undo it.
+#[test]
+fn a_joystick_heading_is_held_from_when_its_command_began() {
+    let seg = |vx, yaw_rate| JoystickSegment { seconds: 3.0, vx, vy: 0.0, yaw_rate };
+    let (straight, left) = (seg(1.0, 0.0), seg(0.8, 0.6));
+    let mut hold = HeadingHold::default();
+    assert_eq!(hold.lag(Some(&straight), 0.0, 3.0), 0.0, "a new command starts where the walker faces");
+    // Drifted 0.2 rad left walking straight: 0.2 rad to the right is asked back.
+    assert!((hold.lag(Some(&straight), 1.0, 3.2) + 0.2).abs() < 1e-12);
+    // Headings wrap: from 3.0 on past pi to -3.0 is 0.28 rad left, not 6 rad right.
+    let lag = hold.lag(Some(&straight), 1.5, -3.0);
+    assert!((lag + (2.0 * std::f64::consts::PI - 6.0)).abs() < 1e-12, "{lag}");
+    // A new command starts again; after 1 s of a 0.6 rad/s turn that only reached 0.2 rad the
+    // walker is 0.4 rad behind, and never more than MAX_LAG however far behind it falls.
+    assert_eq!(hold.lag(Some(&left), 2.0, 1.0), 0.0);
+    assert!((hold.lag(Some(&left), 3.0, 1.2) - 0.4).abs() < 1e-12);
+    assert_eq!(hold.lag(Some(&left), 5.0, 1.0), HeadingHold::MAX_LAG);
+    // ... and the heading asked is kept within MAX_LAG of the walker's (1.5 rad here, not 2.8),
+    // integrated on through a new speed and a turn rate that only jitters (0.62 for 0.6).
+    let lag = hold.lag(Some(&seg(0.5, 0.62)), 5.5, 1.6);
+    assert!((lag - (1.5 + 0.31 - 1.6)).abs() < 1e-12, "{lag}");
+    assert_eq!(hold.lag(None, 5.5, 1.0), 0.0, "no joystick, no heading");
+    // A lag is asked back as a faster turn: 0.25 rad in HeadingHold::CATCH_UP (0.5 s) adds 0.5
+    // rad/s to a 0.6 rad/s command, for the heading and for the turning velocity alike.
+    let layout = Layout { horizon: 4 };
+    let tau = trajectory(layout);
+    let frame = CharFrame::new(DVec3::new(0.0, 0.0, 0.9), 0.0);
+    let task = Task { joystick: vec![left], ..Task::walk() };
+    let asked = task.cost(layout, 0.0, &frame, 0.25).unwrap().unwrap();
+    let faster = Sum::default()
+        .with(1.0, Joystick::turning(layout, 0.8, 0.0, 1.1).unwrap())
+        .with(1.0, Heading::new(layout, 1.1).unwrap());
+    assert!((asked.cost(&tau) - faster.cost(&tau)).abs() < 1e-6, "{} vs {}", asked.cost(&tau), faster.cost(&tau));
+    // Walking straight, the heading is asked too (rate 0).
+    let straight = Task { joystick: vec![straight], ..Task::walk() }.cost(layout, 0.0, &frame, 0.0).unwrap().unwrap();
+    assert_eq!(straight.terms.len(), 2);
+}
+
 #[test]
 fn guidance_gradients_have_the_length_of_their_error_in_normalised_units() {
     let layout = Layout { horizon: 4 };

@@ -164,7 +164,8 @@ impl Study<'_> {
         let trials = self.trials(10, 2);
         let exp = Experiment {
             name: "joystick",
-            settings: self.settings(""),
+            // Points stored before the joystick's heading was held measured another cost.
+            settings: self.settings("heading held"),
             title: "Joystick tracking against guidance (paper Fig. 3)",
             columns: &[
                 "velocity_rmse",

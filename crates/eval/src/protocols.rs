@@ -416,7 +416,8 @@ pub fn guidance_effect(
             *goal = [g.x, g.y];
         }
         let b = env.bodies();
-        let cost = task.cost(traj, 0.0, &CharFrame::from_root(b.pos[0], b.rot[0]))?;
+        // The command has just begun: the walker is on its heading.
+        let cost = task.cost(traj, 0.0, &CharFrame::from_root(b.pos[0], b.rot[0]), 0.0)?;
         costs.push(Some(cost.ok_or(ControlError::Start("the task asks nothing to guide".into()))?));
     }
     let (len, std) = (traj.len(), &bench.model.norm.std[layout.cond_len()..]);
