@@ -335,3 +335,40 @@ fn viewer_serves_and_draws(dir: &Path, file: &str) {
     server.kill().unwrap();
     server.wait().unwrap();
 }
+
+/// `make demo`'s command on the shipped guidance model: it walks forward, turns left, turns
+/// right and walks backward, then touches a hand target, without falling (measured here: +0.87
+/// m/s, +0.57 and -0.56 rad/s for +-0.6, -0.50 m/s for -0.5, the hand within 0.08 m), and writes
+/// what the README shows. A model without inverse dynamics is told how to run it.
+#[test]
+fn the_demo_follows_its_joystick_schedule_and_touches_the_target() {
+    let dir = workdir("demo");
+    let models = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models"));
+    let fm = models.join("fm").display().to_string();
+    let text = ok(&dir, &["demo", "--model", &fm, "-o", "demo"]);
+    assert_eq!(text.matches("no fall").count(), 2, "{text}");
+    // Each segment's line: "commanded VX m/s forward at RATE rad/s: achieved VX m/s forward,
+    // VY m/s left, RATE rad/s (from 1 s in)".
+    let achieved: Vec<(f64, f64)> = text
+        .lines()
+        .filter_map(|l| l.split_once("achieved "))
+        .map(|(_, rest)| {
+            let numbers: Vec<f64> = rest.split_whitespace().filter_map(|w| w.parse().ok()).collect();
+            (numbers[0], numbers[2])
+        })
+        .collect();
+    assert_eq!(achieved.len(), 4, "{text}");
+    let [(forward, _), (_, left), (_, right), (backward, _)] = achieved[..] else { unreachable!() };
+    assert!(forward > 0.6 && left > 0.3 && right < -0.3 && backward < -0.3, "{achieved:?}\n{text}");
+    let closest: f64 =
+        text.split("closest hand-target distance ").nth(1).and_then(|r| r.split(' ').next()).unwrap().parse().unwrap();
+    assert!(closest < 0.15, "{text}");
+    for file in
+        ["joystick.rollout.safetensors", "reach.rollout.safetensors", "joystick_heading.png", "reach_distance.svg"]
+    {
+        assert!(dir.join("demo").join(file).exists(), "demo/{file} missing");
+    }
+    let walk = models.join("fm-walk").display().to_string();
+    let (success, text) = flowmimic(&dir, &["demo", "--model", &walk, "-o", "demo-walk"]);
+    assert!(!success && text.contains("no inverse.safetensors") && text.contains("--inverse-dynamics 0"), "{text}");
+}
