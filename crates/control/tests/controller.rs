@@ -236,7 +236,7 @@ fn inverse_dynamics_executes_the_plans_next_state() {
 /// model walks straight when told to (unguided it circles left; with a turn asked from its
 /// current heading alone, told to walk straight, it circled at +0.28 rad/s here), and turns both
 /// ways at about the commanded rate (it turned right at -0.13 rad/s of -0.6; measured here with
-/// the heading held: +0.05, +0.65 and -0.55).
+/// the heading held: +0.05, +0.65 and -0.51).
 #[test]
 fn the_shipped_guidance_model_holds_its_heading_and_turns_both_ways() {
     let h = Humanoid::new(SimConfig::default()).unwrap();
