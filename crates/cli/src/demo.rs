@@ -85,9 +85,9 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, inverse_dynamics: f32, huma
         t.yaw_rate_rmse,
         fell(&r)
     );
-    for (seg, got) in r.info.tasks[0].joystick.iter().zip(&t.segments) {
+    for ((seg, got), rmse) in r.info.tasks[0].joystick.iter().zip(&t.segments).zip(&t.segment_rmse) {
         println!(
-            "  commanded {:+.1} m/s forward at {:+.1} rad/s: achieved {:+.2} m/s forward, {:+.2} m/s left, {:+.2} rad/s (from {SEGMENT_SETTLE} s in)",
+            "  commanded {:+.1} m/s forward at {:+.1} rad/s: achieved {:+.2} m/s forward, {:+.2} m/s left, {:+.2} rad/s (from {SEGMENT_SETTLE} s in); velocity RMSE {rmse:.2} m/s",
             seg.vx, seg.yaw_rate, got[0], got[1], got[2]
         );
     }

@@ -174,18 +174,23 @@ impl Study<'_> {
                 "backward_vx",
                 "left_yaw_rate",
                 "right_yaw_rate",
+                "forward_rmse",
+                "backward_rmse",
+                "left_rmse",
+                "right_rmse",
                 "fell",
             ],
             plot: "velocity_rmse",
             x_label: "guidance scale w",
             y_label: "velocity RMSE (m/s)",
-            header: "| model | H | w | velocity RMSE (m/s) | yaw-rate RMSE (rad/s) | forward / backward (m/s) | left / right (rad/s) | falls |\n|---|---|---|---|---|---|---|---|",
+            header: "| model | H | w | velocity RMSE (m/s) | per segment: forward / backward / left / right (m/s) | yaw-rate RMSE (rad/s) | forward / backward (m/s) | left / right (rad/s) | falls |\n|---|---|---|---|---|---|---|---|---|",
         };
         let notes = format!(
             "Forward 1.0 m/s, backward 0.5 m/s, turn left and right (0.8 m/s at 0.6 rad/s), 3 s each; RMSE between commanded \
              and achieved planar root velocity (character frame) over the steps before any fall; NFE {nfe}, {trials} trials. \
              Per segment, the mean achieved forward velocity (forward, backward; commanded 1.0 and -0.5 m/s) and yaw rate \
-             (turns; commanded 0.6 and -0.6 rad/s) from {SEGMENT_SETTLE} s after the segment's start, before any fall. \
+             (turns; commanded 0.6 and -0.6 rad/s) from {SEGMENT_SETTLE} s after the segment's start, before any fall, and \
+             the velocity RMSE of each segment over all its steps (the change of gait included). \
              Paper: RMSE ≈ 0.55 at w = 40; 1.05 at H = 2 to 0.70 at H = 16."
         );
         self.guided_sweep(
@@ -197,18 +202,27 @@ impl Study<'_> {
                     .map(|t| {
                         let [fwd, back, left, right] =
                             [0, 1, 2, 3].map(|i| t.segments.get(i).copied().unwrap_or([f64::NAN; 3]));
-                        vec![t.velocity_rmse, t.yaw_rate_rmse, fwd[0], back[0], left[2], right[2], rate(t.fell)]
+                        let per = [0, 1, 2, 3].map(|i| t.segment_rmse.get(i).copied().unwrap_or(f64::NAN));
+                        vec![t.velocity_rmse, t.yaw_rate_rmse, fwd[0], back[0], left[2], right[2]]
+                            .into_iter()
+                            .chain(per)
+                            .chain([rate(t.fell)])
+                            .collect()
                     })
                     .collect())
             },
             |m, s| {
                 format!(
-                    "| {} | {} | {} | {:.3} ± {:.3} | {:.3} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0}% |",
+                    "| {} | {} | {} | {:.3} ± {:.3} | {:.2} / {:.2} / {:.2} / {:.2} | {:.3} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0}% |",
                     m.label,
                     s.horizon,
                     s.scale,
                     s.mean["velocity_rmse"],
                     s.std["velocity_rmse"],
+                    s.mean["forward_rmse"],
+                    s.mean["backward_rmse"],
+                    s.mean["left_rmse"],
+                    s.mean["right_rmse"],
                     s.mean["yaw_rate_rmse"],
                     s.mean["forward_vx"],
                     s.mean["backward_vx"],

@@ -110,6 +110,9 @@ pub struct JoystickTrial {
     /// frame) and yaw rate (rad/s) from [`SEGMENT_SETTLE`] after the segment's start to its
     /// end, before any fall (NaN when the humanoid fell before).
     pub segments: Vec<[f64; 3]>,
+    /// Per joystick segment: the planar velocity RMSE (m/s) over all its steps before any fall,
+    /// the change of gait included (NaN when the humanoid fell before it began).
+    pub segment_rmse: Vec<f64>,
     pub fell: bool,
 }
 
@@ -150,23 +153,22 @@ pub fn joystick_trial(r: &Rollout, e: usize) -> JoystickTrial {
         got.push([f64::from(s[offset::ROOT_VEL]), f64::from(s[offset::ROOT_VEL + 1])]);
         yaw_err += (rate - f64::from(c[2])).powi(2);
     }
-    let mut start = 0.0;
-    let segments = r.info.tasks[e]
-        .joystick
-        .iter()
-        .map(|seg| {
-            let from = ((start + SEGMENT_SETTLE) * CONTROL_HZ).round() as usize;
-            start += seg.seconds;
-            let to = ((start * CONTROL_HZ).round() as usize).min(steps);
-            let n = to.saturating_sub(from) as f64;
-            let mean = |v: &dyn Fn(usize) -> f64| (from..to).map(v).sum::<f64>() / n;
-            [mean(&|k| got[k][0]), mean(&|k| got[k][1]), mean(&|k| rates[k])]
-        })
-        .collect();
+    let (mut start, mut segments, mut segment_rmse) = (0.0, Vec::new(), Vec::new());
+    for seg in &r.info.tasks[e].joystick {
+        let begin = ((start * CONTROL_HZ).round() as usize).min(steps);
+        let from = ((start + SEGMENT_SETTLE) * CONTROL_HZ).round() as usize;
+        start += seg.seconds;
+        let to = ((start * CONTROL_HZ).round() as usize).min(steps);
+        let n = to.saturating_sub(from) as f64;
+        let mean = |v: &dyn Fn(usize) -> f64| (from..to).map(v).sum::<f64>() / n;
+        segments.push([mean(&|k| got[k][0]), mean(&|k| got[k][1]), mean(&|k| rates[k])]);
+        segment_rmse.push(velocity_rmse(&cmd[begin..to.max(begin)], &got[begin..to.max(begin)]));
+    }
     JoystickTrial {
         velocity_rmse: velocity_rmse(&cmd, &got),
         yaw_rate_rmse: (yaw_err / steps.max(1) as f64).sqrt(),
         segments,
+        segment_rmse,
         fell: r.fell(e),
     }
 }

@@ -63,21 +63,46 @@ pub struct Store {
 impl Store {
     const KEY: &'static str = "model,objective,horizon,nfe,scale,gradient,execute,seed,trial";
 
-    pub fn open(path: PathBuf, columns: &[&'static str]) -> Self {
+    /// The trials stored in `path`. A file written with other columns (by an older version of
+    /// the experiment) is moved aside to `NAME.old.csv` (`NAME.old2.csv`, ...), not overwritten.
+    pub fn open(path: PathBuf, columns: &[&'static str]) -> Result<Self> {
         let mut rows: BTreeMap<String, Vec<Vec<f64>>> = BTreeMap::new();
-        let text = flowmimic_io::read_to_string(&path).unwrap_or_default();
+        let text = if path.exists() { flowmimic_io::read_to_string(&path)? } else { String::new() };
         let mut lines = text.lines();
         let header = format!("{},{}", Self::KEY, columns.join(","));
-        if lines.next() == Some(header.as_str()) {
-            for line in lines {
-                let f: Vec<&str> = line.split(',').collect();
-                let values: Option<Vec<f64>> = f.get(9..).map(|v| v.iter().filter_map(|x| x.parse().ok()).collect());
-                if let Some(v) = values.filter(|v| v.len() == columns.len()) {
-                    rows.entry(f[..8].join(",")).or_default().push(v);
+        match lines.next() {
+            Some(first) if first == header => {
+                for line in lines {
+                    let f: Vec<&str> = line.split(',').collect();
+                    let values: Option<Vec<f64>> =
+                        f.get(9..).map(|v| v.iter().filter_map(|x| x.parse().ok()).collect());
+                    if let Some(v) = values.filter(|v| v.len() == columns.len()) {
+                        rows.entry(f[..8].join(",")).or_default().push(v);
+                    }
                 }
             }
+            Some(_) => {
+                let stem = path.file_stem().and_then(|s| s.to_str()).unwrap_or("trials").to_string();
+                let aside = (1..)
+                    .map(|n| {
+                        path.with_file_name(format!(
+                            "{stem}.old{}.csv",
+                            if n == 1 { String::new() } else { n.to_string() }
+                        ))
+                    })
+                    .find(|p| !p.exists())
+                    .expect("a free name");
+                std::fs::rename(&path, &aside)
+                    .map_err(|e| format!("moving {} aside to {}: {e}", path.display(), aside.display()))?;
+                eprintln!(
+                    "{}: stored with other columns (an older version of this experiment); kept as {}",
+                    path.display(),
+                    aside.display()
+                );
+            }
+            None => {}
         }
-        Self { path, columns: columns.to_vec(), rows }
+        Ok(Self { path, columns: columns.to_vec(), rows })
     }
 
     /// The point's key: the model (label, and a hash of its content and the protocol's
@@ -282,7 +307,7 @@ pub fn sweep(
     mut run: impl FnMut(&EvalModel, Point) -> Rows,
     row: impl Fn(&EvalModel, &Summary) -> String,
 ) -> Result<(Vec<Summary>, String)> {
-    let mut stored = Store::open(out.join(format!("{}.csv", exp.name)), exp.columns);
+    let mut stored = Store::open(out.join(format!("{}.csv", exp.name)), exp.columns)?;
     let x_of = |p: &Point| if by_nfe { p.nfe as f64 } else { f64::from(p.scale) };
     let mut chart = Chart::new(exp.title, exp.x_label, exp.y_label);
     let mut falls = Chart::new(&format!("{}: falls", exp.title), exp.x_label, "fall rate");

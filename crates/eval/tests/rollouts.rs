@@ -64,11 +64,13 @@ fn a_known_trace_gives_known_errors() {
 
 #[test]
 fn each_joystick_segment_reports_what_it_achieved_after_settling() {
-    // Two 2 s segments; 0.5 m/s forward then 0.3 m/s backward, turning 0.01 rad per step.
+    // Two 2 s segments, 1 m/s forward then 0.5 m/s backward asked; 0.5 m/s forward then 0.3
+    // m/s backward achieved, turning 0.01 rad per step.
     let seg = |vx| flowmimic_control::JoystickSegment { seconds: 2.0, vx, vy: 0.0, yaw_rate: 0.0 };
     let with = |fall| {
         let mut r = rollout(120, 0.0, 0.01, fall);
         r.info.tasks[0].joystick = vec![seg(1.0), seg(-0.5)];
+        r.command = (0..120).flat_map(|k| r.info.tasks[0].command(k as f64 / 30.0)).collect();
         for k in 61..=120 {
             r.state[k * STATE_DIM + offset::ROOT_VEL] = -0.3;
         }
@@ -79,9 +81,15 @@ fn each_joystick_segment_reports_what_it_achieved_after_settling() {
     for (got, want) in t.segments.iter().zip([[0.5, 0.0, 0.3], [-0.3, 0.0, 0.3]]) {
         assert!(got.iter().zip(want).all(|(g, w)| (g - w).abs() < 1e-4), "{got:?} against {want:?}");
     }
-    // A fall in the second segment's first second leaves nothing of it to report.
+    // Each segment's velocity error over all its steps: 0.5 and 0.2 m/s.
+    assert!((t.segment_rmse[0] - 0.5).abs() < 1e-6 && (t.segment_rmse[1] - 0.2).abs() < 1e-6, "{t:?}");
+    // A fall in the second segment's first second leaves nothing of it to report after
+    // settling, and its error only over the steps before the fall.
     let t = joystick_trial(&with(80), 0);
     assert!((t.segments[0][0] - 0.5).abs() < 1e-9 && t.segments[1].iter().all(|v| v.is_nan()), "{t:?}");
+    assert!((t.segment_rmse[1] - 0.2).abs() < 1e-6, "{t:?}");
+    // A fall before the segment began: nothing of it at all.
+    assert!(joystick_trial(&with(50), 0).segment_rmse[1].is_nan());
 }
 
 #[test]
