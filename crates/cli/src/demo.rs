@@ -4,7 +4,7 @@
 
 use crate::run::{load_model, start_clip};
 use anyhow::Result;
-use flowmimic_control::{ControlConfig, Hand, JoystickSegment, Rollout, Task};
+use flowmimic_control::{ControlConfig, Hand, HeadingHold, JoystickSegment, Rollout, Task};
 use flowmimic_eval::protocols::{SEGMENT_SETTLE, joystick_trial, yaw_rates};
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::skeleton::body;
@@ -75,9 +75,25 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, inverse_dynamics: f32, huma
             })
             .collect::<Vec<_>>()
     };
-    Chart::new("joystick: heading (yaw-rate command summed)", "seconds", "rad")
-        .series(Series::line("commanded", heading(&|k| f64::from(r.command(0, k)[2]))))
-        .series(Series::line("achieved", heading(&|k| rates[k])))
+    let achieved = heading(&|k| rates[k]);
+    // What each turn rate asks: its rate from the heading the walker had when it was set (as
+    // `HeadingHold` starts again), so each segment's line shows how well that turn is followed.
+    let mut since: Option<(f64, f64, f64)> = None;
+    let asked: Vec<(f64, f64)> = achieved
+        .iter()
+        .enumerate()
+        .map(|(k, &(t, now))| {
+            let rate = f64::from(r.command(0, k)[2]);
+            let (_, from, at) = match since {
+                Some(held) if (held.0 - rate).abs() <= HeadingHold::NEW_RATE => held,
+                _ => *since.insert((rate, now, t)),
+            };
+            (t, from + rate * (t - at))
+        })
+        .collect();
+    Chart::new("joystick: heading (each turn rate from the heading it found)", "seconds", "rad")
+        .series(Series::line("commanded", asked))
+        .series(Series::line("achieved", achieved))
         .save(&out.join("joystick_heading"))?;
     println!(
         "joystick (forward, turn left, turn right, backward; w {JOYSTICK_SCALE}): velocity RMSE {:.2} m/s, yaw-rate RMSE {:.2} rad/s, {}",
