@@ -10,8 +10,9 @@
 
 use crate::ModelError;
 use crate::train::held_out;
+use crate::trajectory::Normaliser;
 use flowmimic_data::window::reexpress;
-use flowmimic_data::{Dataset, Moments, Shard};
+use flowmimic_data::{Dataset, Moments};
 use flowmimic_io::tensors::{self, TensorFile};
 use flowmimic_nn::{Adam, Mlp};
 use rand::SeedableRng;
@@ -64,44 +65,31 @@ impl InverseConfig {
     }
 }
 
-/// `s_t` and `s_{t+1}` (re-expressed in the frame of step t) side by side, for every step of
-/// `shard` whose successor lies in the same episode, and the executed action between them;
-/// also each pair's rollout id.
-fn transitions(shard: &Shard, state_dim: usize, action_dim: usize) -> (Vec<f32>, Vec<f32>, Vec<u32>) {
-    let pose = |k: usize| [shard.root_pose[3 * k], shard.root_pose[3 * k + 1], shard.root_pose[3 * k + 2]];
-    let (mut inputs, mut targets, mut rollouts) = (Vec::new(), Vec::new(), Vec::new());
-    let mut next = vec![0.0; state_dim];
-    for t in 0..shard.steps().saturating_sub(1) {
-        if shard.done[t] != 0 || shard.rollout[t] != shard.rollout[t + 1] {
-            continue;
-        }
-        inputs.extend_from_slice(&shard.state[t * state_dim..(t + 1) * state_dim]);
-        reexpress(&shard.state[(t + 1) * state_dim..(t + 2) * state_dim], pose(t + 1), pose(t), &mut next);
-        inputs.extend_from_slice(&next);
-        targets.extend_from_slice(&shard.noisy_action[t * action_dim..(t + 1) * action_dim]);
-        rollouts.push(shard.rollout[t]);
-    }
-    (inputs, targets, rollouts)
-}
-
 /// Rows of inputs `[s_t, s_{t+1}]` and of the executed actions.
 type Rows = (Vec<f32>, Vec<f32>);
 
-/// Every transition of `datasets` as (inputs, executed actions), in two parts: the rollouts
-/// kept for fitting, and those held out (a fixed share, by the trajectory model's hash).
+/// Every transition of `datasets` whose two steps lie in the same episode: `s_t` and `s_{t+1}`
+/// (re-expressed in the frame of step t) side by side, and the executed action between them, in
+/// two parts: the rollouts kept for fitting, and those held out (a fixed share, by the
+/// trajectory model's hash).
 fn split(datasets: &[Dataset], state_dim: usize, action_dim: usize, fraction: f64) -> Result<[Rows; 2], ModelError> {
-    let width = 2 * state_dim;
     let mut parts = [(Vec::new(), Vec::new()), (Vec::new(), Vec::new())];
     let mut shards = Vec::new();
     for dataset in datasets {
         shards.extend(dataset.load_all()?.into_iter().map(|(_, shard)| shard));
     }
+    let mut next = vec![0.0; state_dim];
     for (s, shard) in shards.iter().enumerate() {
-        let (x, y, rollouts) = transitions(shard, state_dim, action_dim);
-        for (k, &r) in rollouts.iter().enumerate() {
-            let (xs, ys) = &mut parts[usize::from(held_out(s, r, fraction))];
-            xs.extend_from_slice(&x[k * width..(k + 1) * width]);
-            ys.extend_from_slice(&y[k * action_dim..(k + 1) * action_dim]);
+        let pose = |k: usize| [shard.root_pose[3 * k], shard.root_pose[3 * k + 1], shard.root_pose[3 * k + 2]];
+        for t in 0..shard.steps().saturating_sub(1) {
+            if shard.done[t] != 0 || shard.rollout[t] != shard.rollout[t + 1] {
+                continue;
+            }
+            let (xs, ys) = &mut parts[usize::from(held_out(s, shard.rollout[t], fraction))];
+            xs.extend_from_slice(&shard.state[t * state_dim..(t + 1) * state_dim]);
+            reexpress(&shard.state[(t + 1) * state_dim..(t + 2) * state_dim], pose(t + 1), pose(t), &mut next);
+            xs.extend_from_slice(&next);
+            ys.extend_from_slice(&shard.noisy_action[t * action_dim..(t + 1) * action_dim]);
         }
     }
     if parts[0].1.is_empty() {
@@ -114,20 +102,14 @@ fn split(datasets: &[Dataset], state_dim: usize, action_dim: usize, fraction: f6
     Ok(parts)
 }
 
-fn standardise(x: &mut [f32], (mean, std): &(Vec<f32>, Vec<f32>)) {
-    for row in x.chunks_exact_mut(mean.len()) {
-        row.iter_mut().zip(mean.iter().zip(std)).for_each(|(v, (m, s))| *v = (*v - m) / s);
-    }
-}
-
 /// An inverse-dynamics model: `(s_t, s_{t+1} in frame t) -> a_t`.
 #[derive(Clone, Debug)]
 pub struct InverseDynamics {
     pub state_dim: usize,
     pub action_dim: usize,
     mlp: Mlp,
-    input_norm: (Vec<f32>, Vec<f32>),
-    output_norm: (Vec<f32>, Vec<f32>),
+    input_norm: Normaliser,
+    output_norm: Normaliser,
 }
 
 /// What one logged step of fitting measured: mean squared error in standardised action units
@@ -158,13 +140,14 @@ impl InverseDynamics {
         let moments = |rows: &[f32], width: usize| {
             let mut m = Moments::new(width);
             m.add(rows);
-            m.finish()
+            let (mean, std) = m.finish();
+            Normaliser { mean, std }
         };
         let input_norm = moments(&train_x, width);
         let output_norm = moments(&train_y, action_dim);
         for (x, y) in [(&mut train_x, &mut train_y), (&mut val_x, &mut val_y)] {
-            standardise(x, &input_norm);
-            standardise(y, &output_norm);
+            input_norm.normalise(x, 0, width);
+            output_norm.normalise(y, 0, action_dim);
         }
         let sizes: Vec<usize> =
             std::iter::once(width).chain(config.hidden.iter().copied()).chain([action_dim]).collect();
@@ -209,12 +192,9 @@ impl InverseDynamics {
     /// The actions for `n` rows of `[s_t, s_{t+1} in frame t]` (physical units).
     pub fn actions(&self, inputs: &[f32], n: usize) -> Vec<f32> {
         let mut x = inputs.to_vec();
-        standardise(&mut x, &self.input_norm);
+        self.input_norm.normalise(&mut x, 0, 2 * self.state_dim);
         let mut y = self.mlp.predict(&x, n);
-        let (mean, std) = &self.output_norm;
-        for row in y.chunks_exact_mut(self.action_dim) {
-            row.iter_mut().zip(mean.iter().zip(std)).for_each(|(v, (m, s))| *v = *v * s + m);
-        }
+        self.output_norm.denormalise(&mut y, 0, self.action_dim);
         y
     }
 
@@ -223,10 +203,10 @@ impl InverseDynamics {
         let names: Vec<(String, String)> =
             (0..self.mlp.layers.len()).map(|l| (format!("layer{l}.weight"), format!("layer{l}.bias"))).collect();
         let mut list: Vec<(&str, Vec<usize>, &[f32])> = vec![
-            ("input_mean", vec![2 * self.state_dim], &self.input_norm.0),
-            ("input_std", vec![2 * self.state_dim], &self.input_norm.1),
-            ("output_mean", vec![self.action_dim], &self.output_norm.0),
-            ("output_std", vec![self.action_dim], &self.output_norm.1),
+            ("input_mean", vec![2 * self.state_dim], &self.input_norm.mean),
+            ("input_std", vec![2 * self.state_dim], &self.input_norm.std),
+            ("output_mean", vec![self.action_dim], &self.output_norm.mean),
+            ("output_std", vec![self.action_dim], &self.output_norm.std),
         ];
         for (layer, (w, b)) in self.mlp.layers.iter().zip(&names) {
             list.push((w, vec![layer.outputs, layer.inputs], &layer.weight));
@@ -275,13 +255,13 @@ impl InverseDynamics {
         let model = Self {
             state_dim: s,
             action_dim: a,
-            input_norm: (file.f32("input_mean", &[2 * s])?, file.f32("input_std", &[2 * s])?),
-            output_norm: (file.f32("output_mean", &[a])?, file.f32("output_std", &[a])?),
+            input_norm: Normaliser { mean: file.f32("input_mean", &[2 * s])?, std: file.f32("input_std", &[2 * s])? },
+            output_norm: Normaliser { mean: file.f32("output_mean", &[a])?, std: file.f32("output_std", &[a])? },
             mlp,
         };
         let finite =
-            model.mlp.params().iter().chain(&model.input_norm.1).chain(&model.output_norm.1).all(|v| v.is_finite());
-        if !finite || model.input_norm.1.iter().any(|s| *s <= 0.0) {
+            model.mlp.params().iter().chain(&model.input_norm.std).chain(&model.output_norm.std).all(|v| v.is_finite());
+        if !finite || model.input_norm.std.iter().any(|s| *s <= 0.0) {
             return Err(file.error("weights or statistics contain NaN, infinity or a zero deviation").into());
         }
         Ok(model)
