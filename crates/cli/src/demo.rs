@@ -33,13 +33,6 @@ fn schedule() -> Task {
 
 pub fn run(model_dir: &Path, out: &Path, nfe: usize, inverse_dynamics: f32, humanoid: &Arc<Humanoid>) -> Result<()> {
     let model = load_model(model_dir)?;
-    if inverse_dynamics > 0.0 && model.inverse.is_none() {
-        anyhow::bail!(
-            "{} has no inverse.safetensors: run the demo with --inverse-dynamics 0, or fit one with `flowmimic inverse DATASET --model {}`",
-            model_dir.display(),
-            model_dir.display()
-        );
-    }
     let clip = start_clip(humanoid, None)?;
     let control =
         |seconds: f64, scale: f32| ControlConfig { inverse_dynamics, ..ControlConfig::new(nfe, scale, seconds) };

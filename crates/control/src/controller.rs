@@ -7,7 +7,7 @@ use crate::history::History;
 use crate::rollout::{Rollout, RolloutInfo};
 use crate::task::{HeadingHold, Task};
 use crate::{ControlError, Layout};
-use flowmimic_geom::{CharFrame, heading};
+use flowmimic_geom::CharFrame;
 use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_sim::{CONTROL_HZ, Env, Humanoid, NUM_DOFS};
@@ -165,7 +165,7 @@ fn check_sampler(model: &TrajectoryModel, config: &ControlConfig) -> Result<(), 
     }
     if beta > 0.0 && model.inverse.is_none() {
         return Err(ControlError::Sampler(
-            "inverse-dynamics actions: the model directory has no inverse.safetensors (`flowmimic inverse`)".into(),
+            "inverse-dynamics actions: the model directory has no inverse.safetensors (fit one with `flowmimic inverse`, or run with --inverse-dynamics 0)".into(),
         ));
     }
     if beta > 0.0 && config.execute != 1 {
@@ -290,8 +290,9 @@ impl<'m> Controller<'m> {
                 let (states, actions) = self.histories[e].conditioning();
                 cond.extend(layout.interleave(&states, &actions));
                 let b = self.envs[e].bodies();
-                let lag = self.holds[e].lag(tasks[e].joystick_at(time), time, heading(b.rot[0]));
-                let cost = tasks[e].cost(traj, time, &CharFrame::from_root(b.pos[0], b.rot[0]), lag)?;
+                let frame = CharFrame::from_root(b.pos[0], b.rot[0]);
+                let lag = self.holds[e].lag(tasks[e].joystick_at(time), time, frame.yaw);
+                let cost = tasks[e].cost(traj, time, &frame, lag)?;
                 let factor =
                     self.config.adaptive.map_or(1.0, |a| a.factor(tasks[e].executed_error(time, &self.recent[e])));
                 costs.push(cost.map(|c| c.scaled(factor)));
