@@ -184,12 +184,20 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     );
     let text = ok(dir, &["eval", "joystick", "--model", "fm=fm", "--scales", "0,10", "--trials", "1", "-o", "eval"]);
     assert!(text.contains("velocity RMSE") && dir.join("eval/joystick.png").exists(), "{text}");
+    // Each row's RMSE as a share of the unguided one (the w 0 row's own is 1).
+    let cells = |row: &str| row.split('|').map(|c| c.trim().to_string()).collect::<Vec<_>>();
+    let rows: Vec<_> = text.lines().filter(|l| l.starts_with("| fm |")).map(cells).collect();
+    let rmse = |c: &[String]| c[4].split(' ').next().unwrap().parse::<f64>().unwrap();
+    assert_eq!(rows[0][5], "1.000", "{text}");
+    let share: f64 = rows[1][5].parse().unwrap();
+    assert!((share - rmse(&rows[1]) / rmse(&rows[0])).abs() < 2e-3, "{text}");
     let text = ok(dir, &["eval", "waypoint", "--model", "fm=fm", "--scales", "10", "--trials", "1", "-o", "eval"]);
     assert!(text.contains("| arrived |") && dir.join("eval/waypoint.csv").exists(), "{text}");
     // Guiding the last solver step too is another point: measured anew and said in the report.
     let last = ["eval", "joystick", "--model", "fm=fm", "--scales", "10", "--trials", "1", "-o", "eval"];
     let text = ok(dir, &[&last[..], &["--guidance-interval", "0:5"]].concat());
     assert!(!text.contains("reusing"), "a stored result answered another guidance interval: {text}");
+    assert!(text.contains("| 10 | ") && text.contains(" | - | "), "no unguided point to divide by: {text}");
     let report = std::fs::read_to_string(dir.join("eval/report.md")).unwrap();
     assert!(report.contains("Guidance on solver steps 0 to 4 of 5."), "{report}");
     let (refused, text) = flowmimic(dir, &[&last[..], &["--guidance-interval", "0:9"]].concat());

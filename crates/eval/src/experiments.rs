@@ -90,7 +90,7 @@ impl Study<'_> {
         exp: &Experiment,
         (scales, nfe, trials, steps): (&[f32], usize, usize, usize),
         rows: impl Fn(&Bench, Point, &dyn Fn(&StepReport)) -> Rows,
-        row: impl Fn(&EvalModel, &Summary) -> String,
+        row: impl Fn(&EvalModel, &Summary, Option<&Summary>) -> String,
         notes: &str,
     ) -> Result<()> {
         // The controller refuses an interval that does not fit the NFE.
@@ -138,7 +138,7 @@ impl Study<'_> {
                     Ok(survived.iter().map(|&s| vec![s as f64]).collect())
                 })
             },
-            |m, s| {
+            |m, s, _| {
                 let paper = match s.nfe {
                     1 => "280 / 30",
                     5 => "820 / 280",
@@ -183,14 +183,15 @@ impl Study<'_> {
             plot: "velocity_rmse",
             x_label: "guidance scale w",
             y_label: "velocity RMSE (m/s)",
-            header: "| model | H | w | velocity RMSE (m/s) | per segment: forward / backward / left / right (m/s) | yaw-rate RMSE (rad/s) | forward / backward (m/s) | left / right (rad/s) | falls |\n|---|---|---|---|---|---|---|---|---|",
+            header: "| model | H | w | velocity RMSE (m/s) | times unguided | per segment: forward / backward / left / right (m/s) | yaw-rate RMSE (rad/s) | forward / backward (m/s) | left / right (rad/s) | falls |\n|---|---|---|---|---|---|---|---|---|---|",
         };
         let notes = format!(
             "Forward 1.0 m/s, backward 0.5 m/s, turn left and right (0.8 m/s at 0.6 rad/s), 3 s each; RMSE between commanded \
              and achieved planar root velocity (character frame) over the steps before any fall; NFE {nfe}, {trials} trials. \
              Per segment, the mean achieved forward velocity (forward, backward; commanded 1.0 and -0.5 m/s) and yaw rate \
              (turns; commanded 0.6 and -0.6 rad/s) from {SEGMENT_SETTLE} s after the segment's start, before any fall, and \
-             the velocity RMSE of each segment over all its steps (the change of gait included). \
+             the velocity RMSE of each segment over all its steps (the change of gait included); \
+             times unguided: the mean RMSE over the same model's at w 0 and this NFE, when the sweep has it. \
              Paper: RMSE ≈ 0.55 at w = 40; 1.05 at H = 2 to 0.70 at H = 16."
         );
         self.guided_sweep(
@@ -211,9 +212,11 @@ impl Study<'_> {
                     })
                     .collect())
             },
-            |m, s| {
+            |m, s, unguided| {
+                let share = unguided
+                    .map_or_else(|| "-".into(), |u| format!("{:.3}", s.mean["velocity_rmse"] / u.mean["velocity_rmse"]));
                 format!(
-                    "| {} | {} | {} | {:.3} ± {:.3} | {:.2} / {:.2} / {:.2} / {:.2} | {:.3} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0}% |",
+                    "| {} | {} | {} | {:.3} ± {:.3} | {share} | {:.2} / {:.2} / {:.2} / {:.2} | {:.3} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0}% |",
                     m.label,
                     s.horizon,
                     s.scale,
@@ -262,7 +265,7 @@ impl Study<'_> {
                 let r = protocols::reach(bench, point, setup, trials, report)?;
                 Ok(r.iter().map(|t| vec![t.mean, t.rms, t.min, rate(t.reached()), rate(t.fell)]).collect())
             },
-            |m, s| {
+            |m, s, _| {
                 format!(
                     "| {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.0}% | {:.0}% |",
                     m.label,
@@ -308,7 +311,7 @@ impl Study<'_> {
                     })
                     .collect())
             },
-            |m, s| {
+            |m, s, _| {
                 // No trial arrived: there is no time to average.
                 let seconds = s.mean["seconds"];
                 let seconds = if seconds.is_nan() { "—".to_string() } else { format!("{seconds:.1}") };
@@ -356,7 +359,7 @@ impl Study<'_> {
                 let r = protocols::compose(bench, point, setup, trials, report)?;
                 Ok(r.iter().map(|t| vec![rate(t.success), t.pelvis_min, t.hand_min, rate(t.fell)]).collect())
             },
-            |m, s| {
+            |m, s, _| {
                 format!(
                     "| {} | {} | {:.0}% | {:.2} | {:.2} | {:.0}% |",
                     m.label,
@@ -411,7 +414,7 @@ impl Study<'_> {
                     Ok(vec![vec![frechet_distance(&gm, &gs, &rm, &rs)]])
                 })
             },
-            |m, s| format!("| {} | {} | {:.4} |", m.label, s.nfe, s.mean["frechet"]),
+            |m, s, _| format!("| {} | {} | {:.4} |", m.label, s.nfe, s.mean["frechet"]),
         )?;
         let table = format!("{table}| reference against itself (floor) | – | {floor:.4} |\n");
         let notes = format!(
@@ -450,7 +453,7 @@ impl Study<'_> {
                 let (model_ms, physics_ms) = protocols::latency(&m.bench(self.humanoid, self.clip), point, 3.0)?;
                 Ok(vec![vec![model_ms, physics_ms, model_ms + physics_ms]])
             },
-            |m, s| {
+            |m, s, _| {
                 format!(
                     "| {} | {} | {} | {:.2} | {:.2} | {:.0} |",
                     m.label,

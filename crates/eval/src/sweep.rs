@@ -298,14 +298,15 @@ pub struct Experiment {
 
 /// Runs (or reuses) every model at every point, one row per trial; plots `plot` against the
 /// swept value (NFE when `by_nfe`, else the guidance scale), and the fall rate when recorded;
-/// returns the summaries and the Markdown table.
+/// returns the summaries and the Markdown table, whose `row`s each see their model's unguided
+/// point (w 0) at the same NFE when the sweep has one.
 pub fn sweep(
     exp: &Experiment,
     out: &Path,
     models: &[EvalModel],
     (points, trials, by_nfe): (&[Point], usize, bool),
     mut run: impl FnMut(&EvalModel, Point) -> Rows,
-    row: impl Fn(&EvalModel, &Summary) -> String,
+    row: impl Fn(&EvalModel, &Summary, Option<&Summary>) -> String,
 ) -> Result<(Vec<Summary>, String)> {
     let mut stored = Store::open(out.join(format!("{}.csv", exp.name)), exp.columns)?;
     let x_of = |p: &Point| if by_nfe { p.nfe as f64 } else { f64::from(p.scale) };
@@ -328,9 +329,13 @@ pub fn sweep(
             if let Some(f) = s.mean.get("fell") {
                 fell.push((x_of(&point), *f));
             }
-            table.push_str(&row(m, &s));
-            table.push('\n');
             summaries.push(s);
+        }
+        let own = &summaries[summaries.len() - points.len()..];
+        for s in own {
+            let unguided = own.iter().find(|u| u.scale == 0.0 && u.nfe == s.nfe);
+            table.push_str(&row(m, s, unguided));
+            table.push('\n');
         }
         let series = Series::line(&m.label, line);
         chart = chart.series(if trials > 1 { series.with_band(band) } else { series });
