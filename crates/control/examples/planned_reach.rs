@@ -7,32 +7,21 @@
 //! plan's own actions). Prints, from the first second until a fall, the hand's mean and highest
 //! height over the plans' horizons, on their first step, and executed.
 
-use flowmimic_control::{ControlConfig, Controller, Hand, Layout, Task};
-use flowmimic_model::TrajectoryModel;
-use flowmimic_motion::{GaitParams, generate};
-use flowmimic_sim::{CONTROL_HZ, Humanoid, SimConfig};
-use std::path::Path;
+mod probe;
+
+use flowmimic_control::{Hand, Layout, Task};
+use flowmimic_sim::CONTROL_HZ;
 
 const ENVS: usize = 8;
 const STEPS: usize = 120;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let number = |i: usize, default: f64| args.get(i).map_or(Ok(default), |a| a.parse::<f64>());
-    let model = TrajectoryModel::load(Path::new(args.first().ok_or("usage: MODEL W [HEIGHT BETA]")?))?;
-    let (w, height, beta) = (number(1, 30.0)?, number(2, 1.3)?, number(3, 0.0)?);
-    let humanoid = Humanoid::new(SimConfig::default())?;
-    let clip = generate(&humanoid, "walk_straight", &GaitParams { duration: 10.0, ..Default::default() })?.0;
+    let probe = probe::Probe::from_args("W [HEIGHT BETA]")?;
+    let (w, height, beta) = (probe.number(1, 30.0)?, probe.number(2, 1.3)?, probe.number(3, 0.0)?);
     let hand = Hand::Right;
     let tasks = vec![Task { reach: Some((hand, [2.0, -0.4, height])), approach: true, ..Task::walk() }; ENVS];
-    let mut controller = Controller::new(
-        &model,
-        &humanoid,
-        &clip,
-        ENVS,
-        &ControlConfig { inverse_dynamics: beta as f32, ..ControlConfig::new(2, w as f32, 4.0) },
-    )?;
-    let traj = Layout { horizon: model.layout().spec.horizon };
+    let mut controller = probe.controller(ENVS, w, beta, 4.0)?;
+    let traj = Layout { horizon: probe.model.layout().spec.horizon };
     let b = hand.body();
     // Per environment: mean and highest hand height over the plans' horizons, on their first
     // step, and executed.

@@ -7,33 +7,23 @@
 //! forward speed the plans predict (over their horizon, and on their first step) and the ones
 //! executed.
 
-use flowmimic_control::{ControlConfig, Controller, JoystickSegment, Layout, Task};
+mod probe;
+
+use flowmimic_control::{JoystickSegment, Layout, Task};
 use flowmimic_geom::{DVec3, heading, wrap_angle};
-use flowmimic_model::TrajectoryModel;
-use flowmimic_motion::{GaitParams, generate};
-use flowmimic_sim::{CONTROL_HZ, Humanoid, SimConfig};
-use std::path::Path;
+use flowmimic_sim::CONTROL_HZ;
 
 const ENVS: usize = 8;
 const STEPS: usize = 300;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let number = |i: usize, default: f64| args.get(i).map_or(Ok(default), |a| a.parse::<f64>());
-    let model = TrajectoryModel::load(Path::new(args.first().ok_or("usage: MODEL W [VX YAW_RATE BETA]")?))?;
+    let probe = probe::Probe::from_args("W [VX YAW_RATE BETA]")?;
+    let number = |i, default| probe.number(i, default);
     let (w, vx, yaw_rate, beta) = (number(1, 30.0)?, number(2, 1.0)?, number(3, 0.0)?, number(4, 0.0)?);
-    let humanoid = Humanoid::new(SimConfig::default())?;
-    let clip = generate(&humanoid, "walk_straight", &GaitParams { duration: 10.0, ..Default::default() })?.0;
     let segment = JoystickSegment { seconds: 10.0, vx, vy: 0.0, yaw_rate };
     let tasks = vec![Task { joystick: vec![segment], ..Task::walk() }; ENVS];
-    let mut controller = Controller::new(
-        &model,
-        &humanoid,
-        &clip,
-        ENVS,
-        &ControlConfig { inverse_dynamics: beta as f32, ..ControlConfig::new(2, w as f32, 10.0) },
-    )?;
-    let traj = Layout { horizon: model.layout().spec.horizon };
+    let mut controller = probe.controller(ENVS, w, beta, 10.0)?;
+    let traj = Layout { horizon: probe.model.layout().spec.horizon };
     let (h, horizon_s) = (traj.horizon, traj.horizon as f64 / CONTROL_HZ);
     // Per environment: the yaw rate over the plan's horizon, on its first step and executed;
     // then the same for the forward speed.
