@@ -32,7 +32,7 @@ pub mod train;
 pub mod trajectory;
 
 pub use inverse::{InverseConfig, InverseDynamics};
-pub use train::{ModelError, TrainConfig, Trainer, WindowSet};
+pub use train::{LrSchedule, ModelError, TrainConfig, Trainer, WindowSet};
 pub use trajectory::{ModelConfig, Objective, Pairing, TaskGuidance, TokenLayout, TrajectoryModel};
 
 use std::ops::Range;

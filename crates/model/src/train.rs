@@ -39,10 +39,13 @@ pub enum ModelError {
 pub struct TrainConfig {
     pub steps: usize,
     pub batch: usize,
-    /// Adam's learning rate after warm-up (constant, as in the paper).
+    /// Adam's learning rate after warm-up.
     pub lr: f32,
     /// Steps of linear warm-up.
     pub warmup: usize,
+    /// What the learning rate does after warm-up: `constant` (the paper) or `cosine` (down to 0
+    /// at `steps`; a resumed run with more steps follows the longer curve from where it is).
+    pub lr_schedule: LrSchedule,
     /// Global gradient-norm clip.
     pub grad_clip: f32,
     /// Flow Matching's distribution of path times.
@@ -72,6 +75,31 @@ pub struct TrainConfig {
     pub seed: u64,
 }
 
+/// The learning rate after warm-up.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LrSchedule {
+    #[default]
+    Constant,
+    Cosine,
+}
+
+impl TrainConfig {
+    /// The learning rate at (0-based) step `step`: linear warm-up, then the schedule.
+    pub fn lr_at(&self, step: usize) -> f32 {
+        let warm = ((step + 1) as f32 / self.warmup.max(1) as f32).min(1.0);
+        let decay = match self.lr_schedule {
+            LrSchedule::Constant => 1.0,
+            LrSchedule::Cosine => {
+                let span = self.steps.saturating_sub(self.warmup).max(1) as f32;
+                let done = (step.saturating_sub(self.warmup) as f32 / span).min(1.0);
+                0.5 * (1.0 + (std::f32::consts::PI * done).cos())
+            }
+        };
+        self.lr * warm * decay
+    }
+}
+
 impl Default for TrainConfig {
     /// The `cpu` preset.
     fn default() -> Self {
@@ -80,6 +108,7 @@ impl Default for TrainConfig {
             batch: 256,
             lr: 1e-3,
             warmup: 500,
+            lr_schedule: LrSchedule::Constant,
             grad_clip: 1.0,
             fm_time: fm::TimeDistribution::Uniform,
             fm_solver: fm::Solver::Euler,
@@ -298,9 +327,9 @@ impl Trainer {
         }
     }
 
-    /// Learning rate at the current step (linear warm-up, then constant).
+    /// Learning rate at the current step.
     pub fn lr(&self) -> f32 {
-        self.config.lr * ((self.step + 1) as f32 / self.config.warmup.max(1) as f32).min(1.0)
+        self.config.lr_at(self.step)
     }
 
     /// Conditioning and clean futures of consecutive windows.

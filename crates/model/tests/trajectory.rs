@@ -1,7 +1,8 @@
-//! The trajectory model's plumbing: token layout, normalisation, and guidance in physical units.
+//! The trajectory model's plumbing: token layout, normalisation, guidance in physical units and
+//! the learning-rate schedule.
 
 use flowmimic_data::{Stats, WindowSpec};
-use flowmimic_model::{Gradient, ModelConfig, TaskGuidance, TokenLayout, TrainConfig, TrajectoryModel};
+use flowmimic_model::{Gradient, LrSchedule, ModelConfig, TaskGuidance, TokenLayout, TrainConfig, TrajectoryModel};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 
@@ -72,4 +73,19 @@ fn guidance_acts_in_physical_units() {
         guided.iter().zip(&unguided).enumerate().filter(|(j, _)| j % f != 2).map(|(_, (a, b))| (a - b).abs()).sum();
     let others = others / (4 * (f - 1)) as f32;
     assert!(others < 0.2 * change, "other entries moved {others} on average, the guided one {change}");
+}
+
+#[test]
+fn the_learning_rate_warms_up_then_holds_or_follows_a_cosine_to_zero() {
+    let constant = TrainConfig { steps: 1000, warmup: 100, lr: 1e-3, ..Default::default() };
+    assert!((constant.lr_at(49) - 5e-4).abs() < 1e-9, "half-way through warm-up");
+    assert_eq!(constant.lr_at(99), 1e-3);
+    assert_eq!(constant.lr_at(999), 1e-3);
+    let cosine = TrainConfig { lr_schedule: LrSchedule::Cosine, ..constant };
+    assert_eq!(cosine.lr_at(49), constant.lr_at(49), "the same warm-up");
+    assert!((cosine.lr_at(100) - 1e-3).abs() < 1e-9, "full at the end of warm-up");
+    assert!((cosine.lr_at(550) - 5e-4).abs() < 1e-7, "half between warm-up and the last step");
+    assert!(cosine.lr_at(1000) < 1e-12 && cosine.lr_at(5000) < 1e-12, "zero from the last step on");
+    let lrs: Vec<f32> = (100..=1000).map(|s| cosine.lr_at(s)).collect();
+    assert!(lrs.windows(2).all(|w| w[1] <= w[0]), "it only falls after warm-up");
 }
