@@ -262,3 +262,33 @@ fn the_shipped_guidance_model_holds_its_heading_and_turns_both_ways() {
     eprintln!("yaw rate (rad/s) asked 0 / +0.6 / -0.6: {straight:+.2} / {left:+.2} / {right:+.2}");
     assert!(straight.abs() < 0.2 && left > 0.4 && right < -0.4, "{straight:+.2} / {left:+.2} / {right:+.2}");
 }
+
+/// The learning rate decayed to zero (`[train] lr_schedule = "cosine"`) straightened the FM
+/// guidance model's own walk: unguided, `fm-cosine` walks straight where `fm` circles left
+/// (8 walkers for 8 s here: mean yaw rate +0.01 against +0.26 rad/s; README, "A learning rate
+/// that decays").
+#[test]
+fn the_cosine_trained_model_walks_straight_where_fm_circles_left() {
+    let h = Humanoid::new(SimConfig::default()).unwrap();
+    let clip = flowmimic_motion::straight_walk(&h).unwrap();
+    let yaw_rates = |name: &str| -> Vec<f64> {
+        let model = shipped(name);
+        let r = run(&model, &h, &clip, vec![Task::walk(); 8], &ControlConfig::new(2, 0.0, 8.0), name, |_| {}).unwrap();
+        let heading = |e: usize, k: usize| {
+            let q = r.qpos(e, k);
+            flowmimic_geom::heading(flowmimic_geom::quat_from_wxyz([q[3], q[4], q[5], q[6]].map(f64::from)))
+        };
+        // Summed step by step from the first second on, so that a full circle is not lost.
+        (0..8)
+            .map(|e| {
+                assert_eq!(r.survived[e], 240, "{name}: walker {e} fell");
+                (30..240).map(|k| flowmimic_geom::wrap_angle(heading(e, k + 1) - heading(e, k))).sum::<f64>() / 7.0
+            })
+            .collect()
+    };
+    let mean = |r: &[f64]| r.iter().sum::<f64>() / r.len() as f64;
+    let (fm, cosine) = (yaw_rates("fm"), yaw_rates("fm-cosine"));
+    eprintln!("unguided yaw rates (rad/s): fm {fm:+.2?}, fm-cosine {cosine:+.2?}");
+    assert!(mean(&fm) > 0.15, "fm no longer circles left: {fm:+.2?}");
+    assert!(mean(&cosine).abs() < 0.08 && cosine.iter().all(|r| r.abs() < 0.2), "fm-cosine turns: {cosine:+.2?}");
+}
