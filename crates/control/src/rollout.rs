@@ -187,6 +187,12 @@ impl Rollout {
         &self.qpos[at..at + self.nq]
     }
 
+    /// The root's heading (rad, world) at step `k` of environment `e`.
+    pub fn heading(&self, e: usize, k: usize) -> f64 {
+        let q = self.qpos(e, k);
+        flowmimic_geom::heading(flowmimic_geom::quat_from_wxyz([q[3], q[4], q[5], q[6]].map(f64::from)))
+    }
+
     pub fn command(&self, e: usize, k: usize) -> &[f32] {
         let at = (e * self.steps + k) * COMMAND_DIM;
         &self.command[at..at + COMMAND_DIM]

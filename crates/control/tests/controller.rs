@@ -245,17 +245,13 @@ fn the_shipped_guidance_model_holds_its_heading_and_turns_both_ways() {
     let seg = |vx, yaw_rate| JoystickSegment { seconds: 3.0, vx, vy: 0.0, yaw_rate };
     let tasks = vec![Task { joystick: vec![seg(1.0, 0.0), seg(0.8, 0.6), seg(0.8, -0.6)], ..Task::walk() }; 4];
     let r = run(&model, &h, &clip, tasks, &ControlConfig::new(2, 30.0, 9.0), "fm", |_| {}).unwrap();
-    let heading = |e: usize, k: usize| {
-        let q = r.qpos(e, k);
-        flowmimic_geom::heading(flowmimic_geom::quat_from_wxyz([q[3], q[4], q[5], q[6]].map(f64::from)))
-    };
     // Each segment's mean yaw rate from its second second on, over the environments standing.
     let rate = |segment: usize| {
         let (from, to) = (segment * 90 + 30, segment * 90 + 90);
         let standing: Vec<usize> = (0..4).filter(|&e| r.survived[e] >= to).collect();
         assert!(standing.len() >= 3, "{} of 4 stand in segment {segment}", standing.len());
         let turned: f64 =
-            standing.iter().map(|&e| flowmimic_geom::wrap_angle(heading(e, to) - heading(e, from))).sum::<f64>();
+            standing.iter().map(|&e| flowmimic_geom::wrap_angle(r.heading(e, to) - r.heading(e, from))).sum::<f64>();
         turned / standing.len() as f64 / 2.0
     };
     let (straight, left, right) = (rate(0), rate(1), rate(2));
@@ -274,15 +270,11 @@ fn the_cosine_trained_model_walks_straight_where_fm_circles_left() {
     let yaw_rates = |name: &str| -> Vec<f64> {
         let model = shipped(name);
         let r = run(&model, &h, &clip, vec![Task::walk(); 8], &ControlConfig::new(2, 0.0, 8.0), name, |_| {}).unwrap();
-        let heading = |e: usize, k: usize| {
-            let q = r.qpos(e, k);
-            flowmimic_geom::heading(flowmimic_geom::quat_from_wxyz([q[3], q[4], q[5], q[6]].map(f64::from)))
-        };
         // Summed step by step from the first second on, so that a full circle is not lost.
         (0..8)
             .map(|e| {
                 assert_eq!(r.survived[e], 240, "{name}: walker {e} fell");
-                (30..240).map(|k| flowmimic_geom::wrap_angle(heading(e, k + 1) - heading(e, k))).sum::<f64>() / 7.0
+                (30..240).map(|k| flowmimic_geom::wrap_angle(r.heading(e, k + 1) - r.heading(e, k))).sum::<f64>() / 7.0
             })
             .collect()
     };

@@ -134,11 +134,7 @@ pub fn joystick(
 
 /// The achieved yaw rate (rad/s) of each step of environment `e` before any fall.
 pub fn yaw_rates(r: &Rollout, e: usize) -> Vec<f64> {
-    let yaw = |k: usize| {
-        let q = r.qpos(e, k);
-        heading(quat_from_wxyz([q[3], q[4], q[5], q[6]].map(f64::from)))
-    };
-    (0..r.survived[e]).map(|k| wrap_angle(yaw(k + 1) - yaw(k)) * CONTROL_HZ).collect()
+    (0..r.survived[e]).map(|k| wrap_angle(r.heading(e, k + 1) - r.heading(e, k)) * CONTROL_HZ).collect()
 }
 
 /// Commanded against achieved velocities of one environment of a rollout.
