@@ -5,7 +5,6 @@
 //! (blue arrow at the feet). `flowmimic view` (crate `flowmimic-serve`) plays the same files in a browser.
 
 use flowmimic_control::Rollout;
-use flowmimic_geom::{heading, quat_from_wxyz};
 use flowmimic_motion::Clip;
 use flowmimic_sim::render::{Marker, Renderer};
 use flowmimic_sim::{CONTROL_HZ, Humanoid};
@@ -61,7 +60,7 @@ impl Frames {
                 });
             }
             if !task.joystick.is_empty() && f64::from(c[0]).hypot(f64::from(c[1])) > 1e-3 {
-                let yaw = heading(quat_from_wxyz([q[3], q[4], q[5], q[6]]));
+                let yaw = r.heading(env, k);
                 let (vx, vy) = (f64::from(c[0]), f64::from(c[1]));
                 let to = [q[0] + yaw.cos() * vx - yaw.sin() * vy, q[1] + yaw.sin() * vx + yaw.cos() * vy, 0.05];
                 m.push(Marker::Arrow { from: [q[0], q[1], 0.05], to, width: 0.04, rgba: [0.1, 0.3, 0.9, 0.9] });
