@@ -4,6 +4,7 @@ use anyhow::{Result, bail};
 use clap::Subcommand;
 use flowmimic_data::{CollectConfig, Dataset, ShardInfo, Stats, WindowSpec, collect};
 use flowmimic_motion::Coverage;
+use flowmimic_motion::clip::{HAND_HIGH, HAND_OVERHEAD};
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::skeleton::body;
 use flowmimic_sim::state::offset;
@@ -144,6 +145,8 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
     println!("{:<20} {:>6} {:>9} {:>8}", "clip", "sigma", "steps", "hours");
     let mut per_sigma: BTreeMap<String, (usize, usize, usize)> = BTreeMap::new();
     let (mut speeds, mut hands, mut walking) = (Vec::new(), Vec::new(), Vec::new());
+    // The higher hand of each step.
+    let mut high_hands = Vec::new();
     let (mut s_lo, mut s_hi) = (vec![f32::MAX; STATE_DIM], vec![f32::MIN; STATE_DIM]);
     let (mut a_lo, mut a_hi) = (f32::MAX, f32::MIN);
     let mut per_clip = Vec::new();
@@ -170,9 +173,10 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
                 s_hi[i] = s_hi[i].max(x);
             }
             speeds.push(f64::from(row[offset::ROOT_VEL]).hypot(f64::from(row[offset::ROOT_VEL + 1])));
-            for hand in [body::L_HAND, body::R_HAND] {
-                hands.push(f64::from(row[offset::ROOT_POS + 2] + row[offset::BODY_POS + 3 * hand + 2]));
-            }
+            let [l, r] = [body::L_HAND, body::R_HAND]
+                .map(|h| f64::from(row[offset::ROOT_POS + 2] + row[offset::BODY_POS + 3 * h + 2]));
+            hands.extend([l, r]);
+            high_hands.push(l.max(r));
         }
         for &a in &shard.action {
             a_lo = a_lo.min(a);
@@ -180,20 +184,21 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
         }
         let clip_walking = walking_velocities(shard);
         walking.extend_from_slice(&clip_walking);
-        per_clip.push((info.clip.clone(), Coverage::of(clip_walking), clip_episodes, clip_falls));
+        per_clip.push((info.clip.clone(), Coverage::of_walks(clip_walking), clip_episodes, clip_falls));
     }
     // Per clip, so that one expert that steps in place or falls cannot hide behind the total.
     println!(
-        "\n{:<20} {:>9} {:>9} {:>8} {:>13} {:>10}",
-        "clip", "steps", "backward", "turning", "sidestepping", "fall rate"
+        "\n{:<20} {:>9} {:>9} {:>8} {:>13} {:>10} {:>10}",
+        "clip", "steps", "backward", "turning", "sidestepping", "reversing", "fall rate"
     );
     for (clip, cov, episodes, falls) in &per_clip {
         println!(
-            "{clip:<20} {:>9} {:>8.1}% {:>7.1}% {:>12.1}% {:>9.0}%",
+            "{clip:<20} {:>9} {:>8.1}% {:>7.1}% {:>12.1}% {:>9.1}% {:>9.0}%",
             cov.steps,
             100.0 * cov.backward,
             100.0 * cov.turning,
             100.0 * cov.sidestep,
+            100.0 * cov.reversing,
             100.0 * *falls as f64 / (*episodes).max(1) as f64
         );
     }
@@ -220,20 +225,42 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
     Chart::new("state coverage: hand height", "hand height above ground (m)", "fraction of hand samples")
         .series(Series::line("hands", flowmimic_plot::histogram(&hands, 0.0, 2.0, 40)))
         .save(&dir.join("coverage_hand_height"))?;
+    print_hand_heights(&high_hands);
     println!("\nwrote coverage_root_speed and coverage_hand_height (.png, .svg) in {}", dir.display());
-    crate::motion::print_coverage(&Coverage::of(walking), &dir)
+    crate::motion::print_coverage(&Coverage::of_walks(walking), &dir)
 }
 
-/// Walking velocities of every step of a shard, each episode's root path measured on its own.
-fn walking_velocities(shard: &flowmimic_data::Shard) -> Vec<[f64; 3]> {
-    let mut out = Vec::with_capacity(shard.steps());
+/// The histogram of the higher hand's height over steps, in 0.1 m bins, and the shares above
+/// the reaching heights.
+fn print_hand_heights(heights: &[f64]) {
+    let n = heights.len().max(1) as f64;
+    let above = |h: f64| 100.0 * heights.iter().filter(|&&x| x > h).count() as f64 / n;
+    println!("\nhigher hand's height (m)   share of steps");
+    for k in 0..20 {
+        let (lo, hi) = (0.1 * k as f64, 0.1 * (k + 1) as f64);
+        let share = heights.iter().filter(|&&x| (lo..hi).contains(&x)).count() as f64 / n;
+        if share > 0.0 {
+            println!("  {lo:.1}-{hi:.1}  {:>6.1}%  {}", 100.0 * share, "#".repeat((100.0 * share).round() as usize));
+        }
+    }
+    println!(
+        "  a hand above {HAND_HIGH} m in {:.1}% of steps, above {HAND_OVERHEAD} m in {:.1}%",
+        above(HAND_HIGH),
+        above(HAND_OVERHEAD)
+    );
+}
+
+/// Walking velocities of every step of a shard, episode by episode, each episode's root path
+/// measured on its own.
+fn walking_velocities(shard: &flowmimic_data::Shard) -> Vec<Vec<[f64; 3]>> {
+    let mut out = Vec::new();
     let mut path: Vec<[f64; 3]> = Vec::new();
     for k in 0..shard.steps() {
         let p = &shard.root_pose[3 * k..3 * k + 3];
         path.push([f64::from(p[0]), f64::from(p[1]), f64::from(p[2])]);
         let last_of_rollout = k + 1 == shard.steps() || shard.rollout[k + 1] != shard.rollout[k];
         if shard.done[k] == 1 || last_of_rollout {
-            out.extend(flowmimic_motion::coverage::walking_velocities(&path));
+            out.push(flowmimic_motion::coverage::walking_velocities(&path));
             path.clear();
         }
     }

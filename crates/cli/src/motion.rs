@@ -4,6 +4,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use flowmimic_motion::{
     Clip, CorpusParams, Coverage, GaitParams, ImportOptions, Segment, Units, UpAxis, WanderParams, coverage, generator,
+    reach::Reaching,
 };
 use flowmimic_plot::{Chart, Series, histogram};
 use flowmimic_sim::Humanoid;
@@ -53,10 +54,20 @@ pub enum MotionCommand {
         /// than --duration are not used).
         #[arg(long)]
         wander: bool,
+        /// With --wander: a walk of transitions instead, its command changing every 1-2.5 s
+        /// to a reversal (forward to backward or back), a stop or start, a sidestep (0.2-0.4
+        /// m/s) or a turn on the spot (0.3-0.7 rad/s).
+        #[arg(long, requires = "wander")]
+        transitions: bool,
+        /// Hands reach for targets and back while the walk slows (0.5-1.7 m high, 0.2-0.7 m
+        /// out from the shoulder, ahead and to the side; out 0.4-1.0 s, held 0.3-1.5 s): the
+        /// share of the time a hand is out, 0.5 when given without a value.
+        #[arg(long, num_args = 0..=1, default_missing_value = "0.5", value_name = "SHARE")]
+        reach: Option<f64>,
         /// One walk that follows a command schedule instead of the gait flags, `run`'s syntax:
         /// `seconds:vx,vy,yaw_rate` segments joined by `;` (forward, left m/s; rad/s), each
         /// blended into the next over 1 s, e.g. "2:1,0,0;3:-0.5,0,0;3:0.9,0,0".
-        #[arg(long, conflicts_with_all = ["wander", "count"])]
+        #[arg(long, conflicts_with_all = ["wander", "count", "reach"])]
         schedule: Option<String>,
         /// Seed of the random walks.
         #[arg(long, default_value_t = 0)]
@@ -68,9 +79,9 @@ pub enum MotionCommand {
         #[arg(short, long, default_value = "runs/clips")]
         out: PathBuf,
     },
-    /// The default varied-walking corpus: wandering walks (seeds 1, 2, ...), a 10 s backward
-    /// walk (walk_back) and every walking capture (.bvh, DeepMimic .txt) in a folder, with its
-    /// quality table and coverage.
+    /// The default corpus: wandering walks (seeds 1, 2, ...), a 10 s backward walk (walk_back),
+    /// every walking capture (.bvh, DeepMimic .txt) in a folder and in its arms/ and walks/
+    /// subfolders, with its quality table and coverage.
     Corpus {
         /// Wandering walks to generate.
         #[arg(long, default_value_t = 4)]
@@ -78,9 +89,21 @@ pub enum MotionCommand {
         /// Length of each wandering walk, s.
         #[arg(long, default_value_t = 40.0)]
         duration: f64,
+        /// Wandering walks whose hands reach for targets (reach_1, ...), beside 30 s of standing
+        /// reaches (reach_stand) when there are any; none with --walking-only.
+        #[arg(long, default_value_t = 4)]
+        reaching: usize,
+        /// Walks of transitions (transitions_1, ...: reversals, stops and starts, sidesteps,
+        /// turns on the spot); none with --walking-only.
+        #[arg(long, default_value_t = 2)]
+        transitions: usize,
         /// Folder of captures to import (skipped with a note when it does not exist).
         #[arg(long, default_value = "../shared/data/mocap")]
         mocap: PathBuf,
+        /// The walking corpus alone (the folder's top level, not arms/ and walks/): the clips
+        /// the `corpus` expert and the `fm` model were made from.
+        #[arg(long)]
+        walking_only: bool,
         /// Output directory.
         #[arg(short, long, default_value = "runs/corpus")]
         out: PathBuf,
@@ -139,14 +162,28 @@ impl GaitArgs {
             step_height: self.step_height,
             arm_swing: self.arm_swing,
             duration: self.duration,
+            reach: None,
         }
     }
 }
 
 fn header() {
     println!(
-        "{:<24} {:>6} {:>6} {:>6} {:>6} {:>7} {:>7} {:>6} {:>6} {:>6} {:>6} {:>6}",
-        "clip", "frames", "sec", "m/s", "root z", "pen cm", "skate", "1-sup", "2-sup", "back", "turn", "side"
+        "{:<24} {:>6} {:>6} {:>6} {:>6} {:>7} {:>7} {:>6} {:>6} {:>6} {:>6} {:>6} {:>6} {:>6}",
+        "clip",
+        "frames",
+        "sec",
+        "m/s",
+        "root z",
+        "pen cm",
+        "skate",
+        "1-sup",
+        "2-sup",
+        "back",
+        "turn",
+        "side",
+        "h>1.1",
+        "h>1.4"
     );
 }
 
@@ -154,7 +191,7 @@ fn row(humanoid: &Arc<Humanoid>, clip: &Clip) {
     let q = clip.quality(humanoid);
     let cov = Coverage::of(clip.walking_velocities());
     println!(
-        "{:<24} {:>6} {:>6.2} {:>6.2} {:>6.3} {:>7.2} {:>7.3} {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}%",
+        "{:<24} {:>6} {:>6.2} {:>6.2} {:>6.3} {:>7.2} {:>7.3} {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}%",
         clip.name,
         q.frames,
         q.duration,
@@ -166,7 +203,9 @@ fn row(humanoid: &Arc<Humanoid>, clip: &Clip) {
         100.0 * q.double_support,
         100.0 * cov.backward,
         100.0 * cov.turning,
-        100.0 * cov.sidestep
+        100.0 * cov.sidestep,
+        100.0 * q.hand_high,
+        100.0 * q.hand_overhead
     );
 }
 
@@ -221,7 +260,8 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
             header();
             clips.iter().for_each(|c| row(humanoid, c));
         }
-        MotionCommand::Generate { gait, count, wander, schedule, seed, name, out } => {
+        MotionCommand::Generate { gait, count, wander, transitions, reach, schedule, seed, name, out } => {
+            let reaching = |seed| reach.map(|share| Reaching { share, seed });
             header();
             let mut clips = Vec::new();
             if let Some(text) = schedule {
@@ -239,17 +279,17 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                         (Some(n), Some(_)) => format!("{n}_{s}"),
                         (None, _) => format!("wander_{s}"),
                     };
-                    let p = WanderParams { seed: s, duration: gait.duration };
+                    let p = WanderParams { seed: s, duration: gait.duration, reach: reaching(s), transitions };
                     clips.push(flowmimic_motion::wander(humanoid, &clip_name, &p)?.0);
                 }
             } else {
                 let name = name.unwrap_or_else(|| "walk".into());
                 let set: Vec<(String, GaitParams)> = match count {
-                    None => vec![(name, gait.params())],
+                    None => vec![(name, GaitParams { reach: reaching(seed), ..gait.params() })],
                     Some(n) => generator::sample_set(n, seed, gait.duration)?
                         .into_iter()
                         .enumerate()
-                        .map(|(i, p)| (format!("{name}_{i:03}"), p))
+                        .map(|(i, p)| (format!("{name}_{i:03}"), GaitParams { reach: reaching(seed + i as u64), ..p }))
                         .collect(),
                 };
                 for (clip_name, p) in set {
@@ -262,11 +302,13 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
             }
             println!("written to {}", out.display());
         }
-        MotionCommand::Corpus { walks, duration, mocap, out } => {
-            let clips = corpus(humanoid, walks, duration, &mocap, &out)?;
+        MotionCommand::Corpus { walks, duration, reaching, transitions, mocap, walking_only, out } => {
+            let (reaching, transitions) = if walking_only { (0, 0) } else { (reaching, transitions) };
+            let params = CorpusParams { walks, duration, reaching, transitions, mocap: Some(mocap), walking_only };
+            let clips = corpus(humanoid, params, &out)?;
             header();
             clips.iter().for_each(|c| row(humanoid, c));
-            print_coverage(&Coverage::of(clips.iter().flat_map(|c| c.walking_velocities()).collect()), &out)?;
+            print_coverage(&Coverage::of_walks(clips.iter().map(|c| c.walking_velocities()).collect()), &out)?;
             println!("{} clips written to {}", clips.len(), out.display());
         }
         MotionCommand::Mirror { files, out } => {
@@ -284,29 +326,21 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
             for file in &files {
                 let clip = Clip::load(humanoid, file)?;
                 row(humanoid, &clip);
-                velocities.extend(clip.walking_velocities());
+                velocities.push(clip.walking_velocities());
             }
             let dir = files[0].parent().unwrap_or(Path::new("."));
-            print_coverage(&Coverage::of(velocities), dir)?;
+            print_coverage(&Coverage::of_walks(velocities), dir)?;
         }
     }
     Ok(())
 }
 
-/// The varied-walking corpus of `flowmimic_motion::corpus`, written to `out` (`mocap` is
-/// skipped with a note when it is not a folder).
-pub(crate) fn corpus(
-    humanoid: &Arc<Humanoid>,
-    walks: usize,
-    duration: f64,
-    mocap: &Path,
-    out: &Path,
-) -> Result<Vec<Clip>> {
-    let folder = mocap.is_dir().then(|| mocap.to_path_buf());
-    if folder.is_none() {
+/// The corpus of `flowmimic_motion::corpus`, written to `out` (its capture folder is skipped
+/// with a note when it is not a folder).
+pub(crate) fn corpus(humanoid: &Arc<Humanoid>, mut params: CorpusParams, out: &Path) -> Result<Vec<Clip>> {
+    if let Some(mocap) = params.mocap.take_if(|m| !m.is_dir()) {
         eprintln!("note: {} is not a folder; the corpus has generated walks only", mocap.display());
     }
-    let params = CorpusParams { walks, duration, mocap: folder };
     let corpus = flowmimic_motion::corpus(humanoid, &params)?;
     for (file, why) in &corpus.left_out {
         eprintln!("note: {} {why}: left out", file.display());
@@ -332,6 +366,11 @@ pub(crate) fn print_coverage(cov: &Coverage, dir: &Path) -> Result<()> {
         100.0 * cov.turning,
         coverage::SIDESTEP,
         100.0 * cov.sidestep
+    );
+    println!(
+        "  reversing (1 s windows whose forward speed goes from beyond +{r} to beyond -{r} m/s, or back) {:.1}%",
+        100.0 * cov.reversing,
+        r = coverage::REVERSING
     );
     for (k, (stem, lo, hi)) in
         [("coverage_forward", -1.0, 2.0), ("coverage_sideways", -0.8, 0.8), ("coverage_yaw_rate", -1.5, 1.5)]

@@ -238,7 +238,15 @@ impl Clip {
             single_support: single as f64 / n as f64,
             double_support: double as f64 / n as f64,
             airborne: (n - single - double) as f64 / n as f64,
+            hand_high: self.share_with_hand_above(HAND_HIGH),
+            hand_overhead: self.share_with_hand_above(HAND_OVERHEAD),
         }
+    }
+
+    /// Fraction of frames in which either hand is higher than `height`, m.
+    pub fn share_with_hand_above(&self, height: f64) -> f64 {
+        let above = self.bodies.iter().filter(|b| b.pos[body::L_HAND].z.max(b.pos[body::R_HAND].z) > height).count();
+        above as f64 / self.len().max(1) as f64
     }
 
     /// Writes the clip atomically (see the module docs for the format).
@@ -411,7 +419,15 @@ pub struct Quality {
     pub single_support: f64,
     pub double_support: f64,
     pub airborne: f64,
+    /// Fractions of frames with a hand (either) above [`HAND_HIGH`] and [`HAND_OVERHEAD`].
+    pub hand_high: f64,
+    pub hand_overhead: f64,
 }
+
+/// Heights that tell reaching apart from walking, m: a walking hand swings 0.7-1.1 m high, a
+/// hand above 1.1 m reaches for a table or shelf, above 1.4 m for a high shelf.
+pub const HAND_HIGH: f64 = 1.1;
+pub const HAND_OVERHEAD: f64 = 1.4;
 
 /// Generalised velocity from pose `a` to pose `b` over `dt` seconds (free root layout).
 fn velocity(a: &[f64], b: &[f64], dt: f64) -> Vec<f64> {

@@ -1,7 +1,9 @@
-//! The default varied-walking corpus (`flowmimic motion corpus`): wandering walks, a steady
-//! backward walk and the walking captures of a folder.
+//! The default corpus (`flowmimic motion corpus`): wandering walks, a steady backward walk, the
+//! walking captures of a folder and, unless walking only, the captures of its `arms/` (hands
+//! busy, 0.1-1.9 m high) and `walks/` subfolders.
 
 use crate::generator::{GaitParams, WanderParams, generate, wander};
+use crate::reach::Reaching;
 use crate::{Clip, ImportOptions, MotionError, import};
 use flowmimic_sim::Humanoid;
 use std::path::{Path, PathBuf};
@@ -20,6 +22,17 @@ pub fn backward_walk() -> GaitParams {
     GaitParams { speed: -0.6, duration: 10.0, ..GaitParams::default() }
 }
 
+/// Share of the time a hand is out in the corpus's reaching walks (`reach_<seed>`), and in its
+/// standing reaches (`reach_stand`).
+pub const REACH_SHARE: f64 = 0.35;
+pub const STAND_REACH_SHARE: f64 = 0.7;
+
+/// The standing reaches: 30 s in place, a hand out 70% of the time.
+pub fn standing_reaches() -> GaitParams {
+    let reach = Some(Reaching { share: STAND_REACH_SHARE, seed: 0 });
+    GaitParams { speed: 0.0, duration: 30.0, reach, ..GaitParams::default() }
+}
+
 /// What goes into the corpus.
 #[derive(Clone, Debug)]
 pub struct CorpusParams {
@@ -27,9 +40,21 @@ pub struct CorpusParams {
     pub walks: usize,
     /// Length of each wandering walk, s.
     pub duration: f64,
+    /// Wandering walks whose hands reach for targets, seeds 1..=reaching, named
+    /// `reach_<seed>`, and 30 s of standing reaches (`reach_stand`) when there are any.
+    pub reaching: usize,
+    /// Walks of transitions (reversals, stops and starts, sidesteps, turns on the spot), seeds
+    /// 1..=transitions, named `transitions_<seed>`.
+    pub transitions: usize,
     /// Folder of captures (.bvh, DeepMimic .txt); `None` for generated walks only.
     pub mocap: Option<PathBuf>,
+    /// Only the walking corpus (the folder's top level), without its [`SUBFOLDERS`].
+    pub walking_only: bool,
 }
+
+/// Subfolders of the capture folder read beside its top level: captures with the arms busy,
+/// and more walks.
+pub const SUBFOLDERS: [&str; 2] = ["arms", "walks"];
 
 /// The corpus's clips and the captures it left out, with why.
 pub struct Corpus {
@@ -37,17 +62,44 @@ pub struct Corpus {
     pub left_out: Vec<(PathBuf, String)>,
 }
 
-/// Builds the corpus: the wandering walks, the backward walk ([`backward_walk`]), then every
-/// capture of the folder in name order that walks (mean speed at most [`MAX_WALKING_SPEED`]).
+/// Builds the corpus: the wandering walks, the backward walk ([`backward_walk`]), the reaching
+/// walks and standing reaches, the walks of transitions, then every
+/// capture of the folder in name order that walks (mean speed at most [`MAX_WALKING_SPEED`]),
+/// then those of its [`SUBFOLDERS`] that exist, each in name order.
 pub fn corpus(humanoid: &Arc<Humanoid>, p: &CorpusParams) -> Result<Corpus, MotionError> {
     let mut clips = Vec::new();
     for seed in 1..=p.walks as u64 {
-        clips.push(wander(humanoid, &format!("wander_{seed}"), &WanderParams { seed, duration: p.duration })?.0);
+        clips.push(
+            wander(
+                humanoid,
+                &format!("wander_{seed}"),
+                &WanderParams { seed, duration: p.duration, ..Default::default() },
+            )?
+            .0,
+        );
     }
     clips.push(generate(humanoid, BACKWARD_WALK, &backward_walk())?.0);
+    for seed in 1..=p.reaching as u64 {
+        let reach = Some(Reaching { share: REACH_SHARE, seed });
+        let walk = WanderParams { seed, duration: p.duration, reach, ..Default::default() };
+        clips.push(wander(humanoid, &format!("reach_{seed}"), &walk)?.0);
+    }
+    if p.reaching > 0 {
+        clips.push(generate(humanoid, "reach_stand", &standing_reaches())?.0);
+    }
+    for seed in 1..=p.transitions as u64 {
+        let walk = WanderParams { seed, duration: p.duration, transitions: true, ..Default::default() };
+        clips.push(wander(humanoid, &format!("transitions_{seed}"), &walk)?.0);
+    }
     let mut left_out = Vec::new();
     if let Some(mocap) = &p.mocap {
-        for file in captures(mocap)? {
+        let mut files = captures(mocap)?;
+        if !p.walking_only {
+            for sub in SUBFOLDERS.iter().map(|s| mocap.join(s)).filter(|d| d.is_dir()) {
+                files.extend(captures(&sub)?);
+            }
+        }
+        for file in files {
             let clip = import(humanoid, &file, &ImportOptions::default())?.clip;
             let speed = clip.quality(humanoid).speed;
             if speed > MAX_WALKING_SPEED {

@@ -12,6 +12,8 @@ pub const BACKWARD: f64 = -0.2;
 pub const TURNING: f64 = 0.3;
 /// Sideways speed above which a step sidesteps, m/s.
 pub const SIDESTEP: f64 = 0.15;
+/// Forward speed, either way, that a reversing window starts and ends beyond, m/s.
+pub const REVERSING: f64 = 0.1;
 
 /// Forward and sideways speed (m/s, in the step's heading frame) and yaw rate (rad/s) of a
 /// planar root path sampled at the control rate, `[x, y, heading]` per step, each averaged
@@ -42,6 +44,9 @@ pub struct Coverage {
     pub backward: f64,
     pub turning: f64,
     pub sidestep: f64,
+    /// Fraction of 1 s windows that reverse: forward speed beyond [`REVERSING`] one way at the
+    /// start and the other way at the end (forward to backward, or back).
+    pub reversing: f64,
     /// Ranges seen: forward speed, sideways speed, yaw rate (min, max).
     pub ranges: [(f64, f64); 3],
     /// The velocities themselves (forward, sideways, yaw rate), for histograms.
@@ -50,7 +55,21 @@ pub struct Coverage {
 }
 
 impl Coverage {
+    /// The coverage of one walk's velocities.
     pub fn of(velocities: Vec<[f64; 3]>) -> Self {
+        Self::of_walks(vec![velocities])
+    }
+
+    /// The coverage of several walks (or episodes), each reversal window within one walk.
+    pub fn of_walks(walks: Vec<Vec<[f64; 3]>>) -> Self {
+        let window = CONTROL_HZ.round() as usize;
+        let (mut windows, mut reversals) = (0, 0);
+        for w in walks.iter().filter(|w| w.len() > window) {
+            windows += w.len() - window;
+            let reverses = |a: f64, b: f64| (a > REVERSING && b < -REVERSING) || (a < -REVERSING && b > REVERSING);
+            reversals += w.windows(window + 1).filter(|p| reverses(p[0][0], p[window][0])).count();
+        }
+        let velocities: Vec<[f64; 3]> = walks.into_iter().flatten().collect();
         let n = velocities.len().max(1) as f64;
         let share = |f: &dyn Fn(&[f64; 3]) -> bool| velocities.iter().filter(|v| f(v)).count() as f64 / n;
         let mut ranges = [(f64::MAX, f64::MIN); 3];
@@ -64,6 +83,7 @@ impl Coverage {
             backward: share(&|v| v[0] < BACKWARD),
             turning: share(&|v| v[2].abs() > TURNING),
             sidestep: share(&|v| v[1].abs() > SIDESTEP),
+            reversing: reversals as f64 / windows.max(1) as f64,
             ranges,
             velocities,
         }

@@ -15,12 +15,16 @@
 //! the stance foot, the legs are solved with two-bone IK (knees point along the foot), the trunk
 //! and arms are built in the heading frame (the arms swing opposite to the legs). The result is a
 //! set of landmarks, retargeted by the same code as captured motion.
+//!
+//! With [`Reaching`], hands also reach for targets and back while the walker slows
+//! ([`crate::reach`]).
 
 use crate::MotionError;
 use crate::clip::Clip;
 use crate::landmarks::{LandmarkClip, NUM_LANDMARKS, Pose};
+use crate::reach::{self, Bend, HOLD_SPEED, HOLD_TURN, PELVIS_HEIGHT, Reach, Reaching, Trunk};
 use crate::retarget::{RetargetReport, retarget};
-use flowmimic_geom::{DQuat, DVec3, yaw_quat};
+use flowmimic_geom::{DVec3, yaw_quat};
 use flowmimic_sim::skeleton::{Shape, bodies, body};
 use flowmimic_sim::{CONTROL_HZ, Humanoid};
 use rand::{Rng, SeedableRng};
@@ -48,6 +52,9 @@ pub struct GaitParams {
     pub arm_swing: f64,
     /// Clip length, s.
     pub duration: f64,
+    /// Hands reaching for targets while walking (none by default).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reach: Option<Reaching>,
 }
 
 impl Default for GaitParams {
@@ -61,6 +68,7 @@ impl Default for GaitParams {
             step_height: 0.08,
             arm_swing: 0.35,
             duration: 6.0,
+            reach: None,
         }
     }
 }
@@ -87,6 +95,7 @@ impl GaitParams {
         check((0.02..=0.2).contains(&self.step_height), "step height must be 0.02-0.2 m")?;
         check((0.0..=1.0).contains(&self.arm_swing), "arm swing must be 0-1 rad")?;
         check((0.5..=600.0).contains(&self.duration), "duration must be 0.5-600 s")?;
+        self.reach.as_ref().map_or(Ok(()), Reaching::validate)?;
         // A step cannot be longer than the legs allow.
         let stride = (self.speed.hypot(self.lateral)) / self.step_frequency;
         check(stride <= 0.85, "speed / step frequency gives steps over 0.85 m: raise the step frequency")
@@ -108,6 +117,7 @@ impl GaitParams {
             step_height: rng.random_range(0.05..0.11),
             arm_swing: rng.random_range(0.15..0.5),
             duration,
+            reach: None,
         }
     }
 
@@ -125,6 +135,7 @@ impl GaitParams {
             step_height: self.step_height,
             arm_swing: self.arm_swing,
             duration: self.duration,
+            reaches: self.reach.map(|r| r.reaches(self.duration)).unwrap_or_default(),
         }
     }
 }
@@ -132,13 +143,23 @@ impl GaitParams {
 /// A wandering walk: one long clip whose command changes smoothly every 1.5-4 s across the
 /// range a person walks (forward 0.3-1.6 m/s, backward to -0.7 m/s, sidesteps up to 0.3 m/s,
 /// turns up to 0.8 rad/s while walking, short stops). The seed picks the walk.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct WanderParams {
     pub seed: u64,
     /// Clip length, s.
     pub duration: f64,
+    /// Hands reaching for targets along the way (none by default).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reach: Option<Reaching>,
+    /// A walk of transitions instead ([`Command::transition`]): every 1-2.5 s a reversal, a
+    /// stop or start, a sidestep or a turn on the spot.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub transitions: bool,
 }
+
+/// Seconds a command of a walk of transitions is held, drawn uniformly.
+pub const TRANSITION_HOLD: [f64; 2] = [1.0, 2.5];
 
 /// Seconds a wandering command is held, drawn uniformly.
 pub const WANDER_HOLD: [f64; 2] = [1.5, 4.0];
@@ -151,17 +172,24 @@ impl WanderParams {
                 WANDER_HOLD[0], self.duration
             )));
         }
-        Ok(())
+        self.reach.as_ref().map_or(Ok(()), Reaching::validate)
     }
 
-    /// The walk's commands: the first held from t = 0, a new one every 1.5-4 s.
+    /// The walk's commands: the first held from t = 0, a new one every 1.5-4 s (1-2.5 s for a
+    /// walk of transitions).
     pub fn schedule(&self) -> Schedule {
         let mut rng = rand::rngs::StdRng::seed_from_u64(self.seed);
+        let hold = if self.transitions { TRANSITION_HOLD } else { WANDER_HOLD };
         let mut keys = vec![(0.0, Command::walk(rng.random_range(0.6..1.2), 0.0, 0.0))];
-        let mut t = rng.random_range(WANDER_HOLD[0]..WANDER_HOLD[1]);
+        let mut t = rng.random_range(hold[0]..hold[1]);
         while t < self.duration {
-            keys.push((t, Command::sample(&mut rng)));
-            t += rng.random_range(WANDER_HOLD[0]..WANDER_HOLD[1]);
+            let command = if self.transitions {
+                Command::transition(&mut rng, &keys.last().expect("a first command").1)
+            } else {
+                Command::sample(&mut rng)
+            };
+            keys.push((t, command));
+            t += rng.random_range(hold[0]..hold[1]);
         }
         Schedule {
             keys,
@@ -169,6 +197,7 @@ impl WanderParams {
             step_height: rng.random_range(0.06..0.1),
             arm_swing: rng.random_range(0.2..0.45),
             duration: self.duration,
+            reaches: self.reach.map(|r| r.reaches(self.duration)).unwrap_or_default(),
         }
     }
 }
@@ -207,7 +236,14 @@ pub fn scheduled_walk(segments: &[Segment]) -> Result<Schedule, MotionError> {
         return Err(MotionError::Invalid("schedule: no segment".into()));
     }
     let defaults = GaitParams::default();
-    Ok(Schedule { keys, heading: 0.0, step_height: defaults.step_height, arm_swing: defaults.arm_swing, duration: t })
+    Ok(Schedule {
+        keys,
+        heading: 0.0,
+        step_height: defaults.step_height,
+        arm_swing: defaults.arm_swing,
+        duration: t,
+        reaches: Vec::new(),
+    })
 }
 
 /// What the walker is told at one instant. Velocities are in the heading frame.
@@ -251,6 +287,30 @@ impl Command {
         }
     }
 
+    /// The next command of a walk of transitions: from walking, a reversal (forward to
+    /// backward or back, blended over 1 s), a stop, a sidestep (0.2-0.4 m/s to either side) or
+    /// a turn on the spot (0.3-0.7 rad/s); from standing, a start forward or backward.
+    pub fn transition(rng: &mut impl Rng, previous: &Self) -> Self {
+        let sign = |rng: &mut dyn rand::RngCore| if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+        let forward = |rng: &mut dyn rand::RngCore| Self::walk(rng.random_range(0.5..1.3), 0.0, 0.0);
+        let backward = |rng: &mut dyn rand::RngCore| Self::walk(-rng.random_range(0.3..0.7), 0.0, 0.0);
+        let r: f64 = rng.random();
+        if previous.activity() < 0.5 || r < 0.4 {
+            // A start from standing, or a reversal of the forward walk.
+            if previous.speed > 0.1 || (previous.speed.abs() <= 0.1 && rng.random_bool(0.3)) {
+                backward(rng)
+            } else {
+                forward(rng)
+            }
+        } else if r < 0.55 {
+            Self::walk(0.0, 0.0, 0.0)
+        } else if r < 0.8 {
+            Self::walk(0.0, sign(rng) * rng.random_range(0.2..0.4), 0.0)
+        } else {
+            Self::walk(0.0, 0.0, sign(rng) * rng.random_range(0.3..0.7))
+        }
+    }
+
     fn lerp(self, other: Self, s: f64) -> Self {
         let mix = |a: f64, b: f64| a + (b - a) * s;
         Self {
@@ -280,28 +340,44 @@ pub struct Schedule {
     pub arm_swing: f64,
     /// Clip length, s.
     pub duration: f64,
+    /// Hands reaching for targets, one at a time, in time order.
+    #[serde(default)]
+    pub reaches: Vec<Reach>,
 }
 
 /// Seconds over which one command blends into the next (a smoothstep).
 const BLEND: f64 = 1.0;
 
 impl Schedule {
-    /// The command at time `t`: the last key's, blended in from the one before over [`BLEND`].
+    /// The command at time `t`: the last key's, blended in from the one before over [`BLEND`],
+    /// slowed toward [`HOLD_SPEED`] and [`HOLD_TURN`] around a reach's hold.
     pub fn at(&self, t: f64) -> Command {
         let k = self.keys.partition_point(|&(time, _)| time <= t).max(1) - 1;
         let (time, current) = self.keys[k];
-        if k == 0 {
-            return current;
+        let command = if k == 0 {
+            current
+        } else {
+            let s = ((t - time) / BLEND).clamp(0.0, 1.0);
+            self.keys[k - 1].1.lerp(current, s * s * (3.0 - 2.0 * s))
+        };
+        let slowing = self.reaches.iter().map(|r| r.slowing(t)).fold(0.0, f64::max);
+        if slowing == 0.0 {
+            return command;
         }
-        let s = ((t - time) / BLEND).clamp(0.0, 1.0);
-        self.keys[k - 1].1.lerp(current, s * s * (3.0 - 2.0 * s))
+        let speed = command.speed.hypot(command.lateral);
+        let scale = if speed > HOLD_SPEED { HOLD_SPEED / speed } else { 1.0 };
+        let turn = command.turn_rate.clamp(-HOLD_TURN, HOLD_TURN);
+        command.lerp(Command::walk(scale * command.speed, scale * command.lateral, turn), slowing)
+    }
+
+    /// The reach under way at `t`, with how far out its hand is.
+    fn reach_at(&self, t: f64) -> Option<(usize, f64)> {
+        self.reaches.iter().enumerate().map(|(i, r)| (i, r.weight(t))).find(|&(_, w)| w > 0.0)
     }
 }
 
 /// Fraction of a gait cycle a foot is in the air.
 const SWING_FRACTION: f64 = 0.4;
-/// Highest pelvis height while walking (legs slightly bent), m.
-const PELVIS_HEIGHT: f64 = 0.905;
 /// Vertical pelvis bob amplitude, m.
 const BOB: f64 = 0.012;
 /// Fraction of the full leg length the hip-to-ankle distance may reach.
@@ -451,7 +527,7 @@ impl Gait<'_> {
 }
 
 /// Knee position of a two-bone leg from hip to ankle, bending toward `forward`.
-fn knee(hip: DVec3, ankle: DVec3, thigh: f64, shin: f64, forward: DVec3) -> DVec3 {
+pub(crate) fn knee(hip: DVec3, ankle: DVec3, thigh: f64, shin: f64, forward: DVec3) -> DVec3 {
     let d = (ankle - hip).length().clamp(1e-6, (thigh + shin) * 0.9999);
     let u = (ankle - hip).normalize();
     let along = (thigh * thigh - shin * shin + d * d) / (2.0 * d);
@@ -462,6 +538,12 @@ fn knee(hip: DVec3, ankle: DVec3, thigh: f64, shin: f64, forward: DVec3) -> DVec
 
 /// Landmarks of a generated walk at 30 Hz.
 pub fn landmarks(schedule: &Schedule) -> Result<LandmarkClip, MotionError> {
+    landmarks_aimed(schedule, &[])
+}
+
+/// Landmarks of a generated walk whose reaching hands aim at their targets moved by `aim[frame]`
+/// (none where `aim` is short).
+fn landmarks_aimed(schedule: &Schedule, aim: &[DVec3]) -> Result<LandmarkClip, MotionError> {
     let specs = bodies();
     let off = |b: usize| DVec3::from_array(specs[b].offset);
     let (thigh, shin) = (off(body::L_KNEE).length(), off(body::L_ANKLE).length());
@@ -471,6 +553,7 @@ pub fn landmarks(schedule: &Schedule) -> Result<LandmarkClip, MotionError> {
         _ => unreachable!("the foot is a box"),
     };
     let gait = Gait { plan: Plan::new(schedule), hip_width: off(body::L_HIP).y, ankle_height };
+    let planned: Vec<(DVec3, Bend)> = schedule.reaches.iter().map(|r| planned_reach(&gait.plan, r)).collect();
     let frames = (schedule.duration * CONTROL_HZ).round() as usize + 1;
     let poses = (0..frames)
         .map(|i| {
@@ -481,19 +564,20 @@ pub fn landmarks(schedule: &Schedule) -> Result<LandmarkClip, MotionError> {
             // With flat feet, both must reach the ground in double support, when each ankle is
             // half a step from the hip: lower the pelvis for long steps (a more bent-knee gait).
             let half_step = 0.5 * c.speed.hypot(c.lateral) / c.step_frequency;
-            let reach = (REACH * (thigh + shin)).powi(2) - half_step * half_step;
-            let pelvis_height = PELVIS_HEIGHT.min(reach.max(0.0).sqrt() + ankle_height - off(body::L_HIP).z + BOB);
+            let leg_reach = (REACH * (thigh + shin)).powi(2) - half_step * half_step;
+            let pelvis_height = PELVIS_HEIGHT.min(leg_reach.max(0.0).sqrt() + ankle_height - off(body::L_HIP).z + BOB);
             let cycle_phase = TAU * gait.plan.phase(t);
             // Bob: highest at mid-stance of either foot; sway toward the stance foot.
             let mid_stance = TAU * (SWING_FRACTION + 0.5 * (1.0 - SWING_FRACTION));
             let bob = activity * BOB * (2.0 * cycle_phase - mid_stance).cos();
             let sway = activity * 0.02 * (cycle_phase - mid_stance).cos();
             let lean = 0.06 * c.speed; // lean into the walk
-            let heading = yaw_quat(yaw);
-            let pelvis_rot = heading * DQuat::from_rotation_y(lean * 0.5);
-            let pelvis = root + DVec3::new(0.0, 0.0, pelvis_height + bob) + heading * DVec3::new(0.0, sway, 0.0);
-            let chest_rot = heading * DQuat::from_rotation_y(lean);
-            let chest = pelvis + pelvis_rot * (off(body::TORSO) + off(body::SPINE) + off(body::CHEST));
+            let upright = root + DVec3::new(0.0, 0.0, pelvis_height + bob) + yaw_quat(yaw) * DVec3::new(0.0, sway, 0.0);
+            // A reach under way: its side, target and how far out the hand is.
+            let reaching = schedule.reach_at(t).map(|(k, w)| (schedule.reaches[k].side, planned[k].0, w));
+            let bend = schedule.reach_at(t).map_or(Bend::NONE, |(k, w)| planned[k].1.scaled(w));
+            let trunk = Trunk::new(upright, yaw, lean, bend);
+            let Trunk { pelvis, pelvis_rot, chest, chest_rot } = trunk;
             let neck = chest + chest_rot * off(body::NECK);
             let head = neck + chest_rot * DVec3::new(0.0, 0.0, 0.12);
             let mut pose: Pose = [DVec3::ZERO; NUM_LANDMARKS];
@@ -508,13 +592,24 @@ pub fn landmarks(schedule: &Schedule) -> Result<LandmarkClip, MotionError> {
                 let swing = activity
                     * schedule.arm_swing
                     * (cycle_phase - TAU * Gait::offset(1 - side) - PI * SWING_FRACTION).sin();
-                // Mirror the left side's offsets in the body's own frame, then rotate.
-                let mirror = DVec3::new(1.0, sign, 1.0);
-                let shoulder = chest + chest_rot * ((off(body::L_THORAX) + off(body::L_SHOULDER)) * mirror);
+                let shoulder = trunk.shoulder(side);
                 let down = chest_rot * DVec3::new(swing.sin(), sign * 0.12, -swing.cos()).normalize();
-                let elbow = shoulder + down * off(body::L_ELBOW).length();
+                let mut elbow = shoulder + down * off(body::L_ELBOW).length();
                 let bend = chest_rot * DVec3::new((swing + 0.5).sin(), sign * 0.1, -(swing + 0.5).cos()).normalize();
-                let wrist = elbow + bend * off(body::L_WRIST).length();
+                let mut wrist = elbow + bend * off(body::L_WRIST).length();
+                if let Some((_, target, w)) = reaching.filter(|r| r.0 == side) {
+                    // The hand goes from where it swings to the target, the
+                    // elbow pointing back, out and down as when a person reaches; the swinging
+                    // arm's elbow gives way to that one early on, while both are close.
+                    let hand = wrist + (wrist - elbow).normalize() * off(body::L_HAND).length();
+                    let aimed = target + aim.get(i).copied().unwrap_or_default();
+                    let pole = chest_rot * DVec3::new(-0.5, sign * 0.5, -0.7);
+                    // On the way, the hand bows out to the side, clear of the hips.
+                    let out = chest_rot * DVec3::new(0.0, sign * 0.3 * w * (1.0 - w), 0.0);
+                    let (e, h) = reach::arm(shoulder, hand.lerp(aimed, w) + out, pole);
+                    let early = (w / 0.3).min(1.0);
+                    (elbow, wrist) = (elbow.lerp(e, early), wrist.lerp(h, early));
+                }
                 let set = |pose: &mut Pose, l: usize, v: DVec3| pose[l + side] = v;
                 set(&mut pose, 0, hip);
                 set(&mut pose, 2, knee_p);
@@ -533,18 +628,65 @@ pub fn landmarks(schedule: &Schedule) -> Result<LandmarkClip, MotionError> {
     Ok(LandmarkClip { fps: CONTROL_HZ, frames: poses })
 }
 
+/// A reach's target in the world (placed at the middle of its hold, where the walker is then)
+/// and the bend that gets the hand there.
+fn planned_reach(plan: &Plan, r: &Reach) -> (DVec3, Bend) {
+    let (root, yaw) = plan.root(0.5 * (r.hold_start() + r.hold_end()));
+    let target = r.target(root, yaw);
+    (target, reach::bend_for(target, r.side, |bend| Trunk::standing(root, yaw, bend)).0)
+}
+
+/// The world targets of a schedule's reaches, in the frame of its landmarks.
+pub fn reach_targets(schedule: &Schedule) -> Vec<DVec3> {
+    let plan = Plan::new(schedule);
+    schedule.reaches.iter().map(|r| planned_reach(&plan, r).0).collect()
+}
+
+/// Passes of aiming a reaching hand again at where the retargeted hand missed: the humanoid's
+/// shoulder sits up to 2 cm from the generator's, and two passes bring the hand within 2 mm.
+const AIM_PASSES: usize = 2;
+
+/// The clip of a schedule. With reaches, the retargeted hands are measured against their
+/// targets and aimed again ([`AIM_PASSES`]).
+fn clip_of(
+    humanoid: &Arc<Humanoid>,
+    schedule: &Schedule,
+    name: &str,
+    origin: &str,
+) -> Result<(Clip, RetargetReport), MotionError> {
+    let mut aim = Vec::new();
+    let mut out = retarget(humanoid, &landmarks(schedule)?, name, origin, false)?;
+    if schedule.reaches.is_empty() {
+        return Ok(out);
+    }
+    let targets = reach_targets(schedule);
+    for _ in 0..AIM_PASSES {
+        let (clip, report) = &out;
+        aim.resize(clip.len(), DVec3::ZERO);
+        for (i, a) in aim.iter_mut().enumerate() {
+            if let Some((k, _)) = schedule.reach_at(i as f64 / CONTROL_HZ) {
+                let hand = [body::L_HAND, body::R_HAND][schedule.reaches[k].side];
+                let miss = clip.bodies[i].pos[hand] - report.placement.apply(i, targets[k]);
+                *a -= yaw_quat(report.placement.yaw) * miss / report.placement.scale;
+            }
+        }
+        out = retarget(humanoid, &landmarks_aimed(schedule, &aim)?, name, origin, false)?;
+    }
+    Ok(out)
+}
+
 /// A generated walking clip for the humanoid, one constant command.
 pub fn generate(humanoid: &Arc<Humanoid>, name: &str, p: &GaitParams) -> Result<(Clip, RetargetReport), MotionError> {
     p.validate()?;
     let source = serde_json::to_string(p).expect("json");
-    retarget(humanoid, &landmarks(&p.schedule())?, name, &format!("generator {source}"), false)
+    clip_of(humanoid, &p.schedule(), name, &format!("generator {source}"))
 }
 
 /// A generated wandering walk (see [`WanderParams`]).
 pub fn wander(humanoid: &Arc<Humanoid>, name: &str, p: &WanderParams) -> Result<(Clip, RetargetReport), MotionError> {
     p.validate()?;
     let source = serde_json::to_string(p).expect("json");
-    retarget(humanoid, &landmarks(&p.schedule())?, name, &format!("generator wander {source}"), false)
+    clip_of(humanoid, &p.schedule(), name, &format!("generator wander {source}"))
 }
 
 /// A generated walk that follows a command schedule (see [`scheduled_walk`]).
@@ -555,7 +697,7 @@ pub fn scheduled(
 ) -> Result<(Clip, RetargetReport), MotionError> {
     let schedule = scheduled_walk(segments)?;
     let source = serde_json::to_string(segments).expect("json");
-    retarget(humanoid, &landmarks(&schedule)?, name, &format!("generator schedule {source}"), false)
+    clip_of(humanoid, &schedule, name, &format!("generator schedule {source}"))
 }
 
 /// The generated 10 s straight walk at 1 m/s, `walk_straight`: every stage's default clip

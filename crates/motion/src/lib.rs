@@ -11,6 +11,7 @@ pub mod coverage;
 pub mod generator;
 pub mod joint_map;
 pub mod landmarks;
+pub mod reach;
 pub mod retarget;
 
 pub use clip::{Clip, Quality};

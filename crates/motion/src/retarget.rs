@@ -167,6 +167,25 @@ pub struct RetargetReport {
     pub clamped: f64,
     /// Median over frames of the height correction applied to the root, metres.
     pub ground_offset: f64,
+    /// Where the source's frame went: the clip starts at the origin facing +x.
+    pub placement: Placement,
+}
+
+/// How retargeting moved the source: scaled by `scale`, shifted by `-start`, turned by `-yaw`
+/// about the vertical, and each frame lowered by its height correction.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Placement {
+    pub scale: f64,
+    pub start: DVec3,
+    pub yaw: f64,
+    pub lowered: Vec<f64>,
+}
+
+impl Placement {
+    /// A point of the source at frame `frame` (of the 30 Hz resampling), in the clip's frame.
+    pub fn apply(&self, frame: usize, p: DVec3) -> DVec3 {
+        yaw_quat(-self.yaw) * (p * self.scale - self.start) - DVec3::Z * self.lowered[frame]
+    }
 }
 
 /// Retargets landmarks to the humanoid. `cyclic` marks a clip whose last frame repeats its
@@ -236,11 +255,14 @@ pub fn retarget(
     }
     let lowest = lowest_soles(humanoid, &qpos);
     let ground_offset = median(lowest.clone());
-    for (q, z) in qpos.iter_mut().zip(smooth(&lowest, GROUNDING_WINDOW)) {
+    let lowered = smooth(&lowest, GROUNDING_WINDOW);
+    for (q, z) in qpos.iter_mut().zip(&lowered) {
         q[2] -= z;
     }
     let clip = Clip::from_qpos(humanoid, name, origin, cyclic, qpos)?;
-    let report = RetargetReport { scale, clamped: clamped as f64 / (frames.len() * NUM_DOFS) as f64, ground_offset };
+    let placement = Placement { scale, start, yaw: yaw0, lowered };
+    let report =
+        RetargetReport { scale, clamped: clamped as f64 / (frames.len() * NUM_DOFS) as f64, ground_offset, placement };
     Ok((clip, report))
 }
 

@@ -17,7 +17,7 @@ const LEFT_LEG: [usize; 4] = [body::L_HIP, body::L_KNEE, body::L_ANKLE, body::L_
 const RIGHT_LEG: [usize; 4] = [body::R_HIP, body::R_KNEE, body::R_ANKLE, body::R_TOE];
 
 /// Walks from the whole range: any speed forward and back, sideways, turn rate, heading and
-/// step frequency the generator accepts, plus wandering walks and a scheduled walk that
+/// step frequency the generator accepts, plus wandering walks, walks of transitions and a scheduled walk that
 /// reverses from forward to backward and back, turning and sidestepping.
 fn random_walks(h: &Arc<Humanoid>) -> Vec<(Clip, Schedule)> {
     let mut rng = rand::rngs::StdRng::seed_from_u64(7);
@@ -37,8 +37,10 @@ fn random_walks(h: &Arc<Humanoid>) -> Vec<(Clip, Schedule)> {
         }
     }
     for seed in 1..=2 {
-        let p = WanderParams { seed, duration: 30.0 };
+        let p = WanderParams { seed, duration: 30.0, ..Default::default() };
         walks.push((wander(h, "wander", &p).unwrap().0, p.schedule()));
+        let p = WanderParams { seed, duration: 30.0, transitions: true, ..Default::default() };
+        walks.push((wander(h, "transitions", &p).unwrap().0, p.schedule()));
     }
     let seg = |seconds, speed, lateral, turn_rate| Segment { seconds, speed, lateral, turn_rate };
     let segments =
@@ -67,7 +69,12 @@ fn generated_walks_keep_their_invariants() {
             for (a, b) in env.self_contacts() {
                 let crosses = (LEFT_LEG.contains(&a) && RIGHT_LEG.contains(&b))
                     || (RIGHT_LEG.contains(&a) && LEFT_LEG.contains(&b));
-                assert!(!crosses, "{what}: frame {t}: bodies {a} and {b} touch");
+                assert!(
+                    !crosses,
+                    "{what}: frame {t}: bodies {a} and {b} touch; command {:?} {:?}",
+                    schedule.at(t as f64 / 30.0),
+                    schedule.keys.iter().filter(|k| (k.0 - t as f64 / 30.0).abs() < 3.0).collect::<Vec<_>>()
+                );
             }
             // Planted feet do not slide: the touching part of a foot on the ground is still.
             for (side, [ankle, toe]) in [[body::L_ANKLE, body::L_TOE], [body::R_ANKLE, body::R_TOE]].iter().enumerate()
@@ -104,13 +111,13 @@ fn generated_walks_keep_their_invariants() {
 #[test]
 fn wandering_walks_cover_what_people_do_and_differ_by_seed() {
     let h = Humanoid::new(SimConfig::default()).unwrap();
-    let walk = |seed| wander(&h, "w", &WanderParams { seed, duration: 40.0 }).unwrap().0;
+    let walk = |seed| wander(&h, "w", &WanderParams { seed, duration: 40.0, ..Default::default() }).unwrap().0;
     let (a, b) = (walk(1), walk(2));
     assert_eq!(a.len(), 1201);
     assert_ne!(a.qpos, b.qpos, "different seeds, different walks");
     assert_eq!(a.qpos, walk(1).qpos, "the same seed, the same walk");
     // Commands change every 1.5-4 s.
-    let keys = WanderParams { seed: 1, duration: 40.0 }.schedule().keys;
+    let keys = WanderParams { seed: 1, duration: 40.0, ..Default::default() }.schedule().keys;
     for pair in keys.windows(2) {
         let hold = pair[1].0 - pair[0].0;
         assert!((1.5..=4.0).contains(&hold), "a command held {hold} s");
@@ -132,7 +139,10 @@ fn impossible_walks_are_refused_quickly() {
     assert!(generator::sample_set(4, 0, 1e6).is_err());
     let h = Humanoid::new(SimConfig::default()).unwrap();
     for duration in [0.5, f64::NAN, 1e9] {
-        assert!(wander(&h, "w", &WanderParams { seed: 1, duration }).is_err(), "duration {duration}");
+        assert!(
+            wander(&h, "w", &WanderParams { seed: 1, duration, ..Default::default() }).is_err(),
+            "duration {duration}"
+        );
     }
     // A schedule is checked segment by segment, and the error names the segment.
     let seg = |speed| Segment { seconds: 2.0, speed, lateral: 0.0, turn_rate: 0.0 };

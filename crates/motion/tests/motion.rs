@@ -377,7 +377,18 @@ fn velocities_are_central_differences_of_the_poses() {
 fn the_corpus_holds_the_wandering_walks_the_backward_walk_and_the_walking_captures() {
     let h = humanoid();
     let dir = mocap("");
-    let built = corpus(&h, &CorpusParams { walks: 2, duration: 6.0, mocap: Some(dir.clone()) }).unwrap();
+    let built = corpus(
+        &h,
+        &CorpusParams {
+            walks: 2,
+            duration: 6.0,
+            reaching: 0,
+            transitions: 0,
+            mocap: Some(dir.clone()),
+            walking_only: true,
+        },
+    )
+    .unwrap();
     let names: Vec<&str> = built.clips.iter().map(|c| c.name.as_str()).collect();
     assert_eq!(
         names,
@@ -392,8 +403,61 @@ fn the_corpus_holds_the_wandering_walks_the_backward_walk_and_the_walking_captur
     assert!(back.backward > 0.9, "backward in {:.0}% of its steps", 100.0 * back.backward);
     assert!(back.turning < 0.05 && back.sidestep < 0.05, "turning {} sidestepping {}", back.turning, back.sidestep);
     // Without a folder, the generated walks alone.
-    let generated = corpus(&h, &CorpusParams { walks: 1, duration: 6.0, mocap: None }).unwrap();
+    let generated = corpus(
+        &h,
+        &CorpusParams { walks: 1, duration: 6.0, reaching: 0, transitions: 0, mocap: None, walking_only: false },
+    )
+    .unwrap();
     assert_eq!(generated.clips.iter().map(|c| c.name.as_str()).collect::<Vec<_>>(), ["wander_1", "walk_back"]);
+}
+
+#[test]
+fn the_corpus_with_arms_holds_reaches_transitions_and_the_captures_of_the_subfolders() {
+    let h = humanoid();
+    let params = CorpusParams {
+        walks: 1,
+        duration: 30.0,
+        reaching: 4,
+        transitions: 2,
+        mocap: Some(mocap("")),
+        walking_only: false,
+    };
+    let built = corpus(&h, &params).unwrap();
+    let names: Vec<&str> = built.clips.iter().map(|c| c.name.as_str()).collect();
+    assert_eq!(
+        names[..9],
+        [
+            "wander_1",
+            "walk_back",
+            "reach_1",
+            "reach_2",
+            "reach_3",
+            "reach_4",
+            "reach_stand",
+            "transitions_1",
+            "transitions_2"
+        ]
+    );
+    let from = |folder: &str| {
+        let files = std::fs::read_dir(mocap(folder)).unwrap().filter_map(|e| e.ok()).collect::<Vec<_>>();
+        let stems: Vec<String> = files.iter().map(|f| f.path().file_stem().unwrap().to_string_lossy().into()).collect();
+        names.iter().filter(|n| stems.iter().any(|s| s == *n)).count()
+    };
+    assert!(from("arms") >= 6 && from("walks") >= 10, "arms {} walks {}", from("arms"), from("walks"));
+    // The reaching clips raise a hand above the walking swing, the arms captures too.
+    for clip in built.clips.iter().filter(|c| c.name.starts_with("reach")) {
+        assert!(clip.duration() >= 30.0, "{}: {:.1} s", clip.name, clip.duration());
+        assert!(clip.share_with_hand_above(clip::HAND_HIGH) > 0.1, "{}", clip.name);
+    }
+    let arms = built.clips.iter().find(|c| c.name == "05_10").unwrap();
+    assert!(arms.share_with_hand_above(clip::HAND_OVERHEAD) > 0.5);
+    // The walks of transitions reverse from forward to backward and back within a second.
+    let transitions: Vec<_> = built.clips.iter().filter(|c| c.name.starts_with("transitions")).collect();
+    let cov = Coverage::of_walks(transitions.iter().map(|c| c.walking_velocities()).collect());
+    assert!(cov.reversing > 0.05 && cov.sidestep > 0.1 && cov.backward > 0.1, "{cov:?}");
+    // The wandering walk alone hardly reverses, and a steady walk never does.
+    let steady = Coverage::of(built.clips[1].walking_velocities());
+    assert_eq!(steady.reversing, 0.0);
 }
 
 #[test]

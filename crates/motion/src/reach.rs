@@ -1,0 +1,297 @@
+//! Reaching in generated walks: a hand goes to a target and back while the walker slows down;
+//! the torso leans and the knees bend for targets low or far, so that the arm gets there.
+//!
+//! A [`Reach`] is drawn relative to the walker (which hand, how high, how far out from the
+//! shoulder, toward which side) and placed in the world at the middle of its hold, where the
+//! hand then stays while the walker creeps on at most [`HOLD_SPEED`]. The pose of the upper body
+//! is a [`Trunk`]: the walking generator's pelvis and chest, bent toward the target by a
+//! [`Bend`]. The bend is the smallest (lean and crouch weighed together) from which the arm,
+//! a two-bone chain from the shoulder to the hand, reaches the target with room to spare.
+
+use crate::MotionError;
+use flowmimic_geom::{DQuat, DVec3, yaw_quat};
+use flowmimic_sim::skeleton::{bodies, body};
+use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
+use std::f64::consts::FRAC_PI_2;
+
+/// Fastest walk and turn while a hand is out, m/s and rad/s: the target stays in reach (at
+/// most 0.08 m of drift over the longest hold).
+pub const HOLD_SPEED: f64 = 0.05;
+pub const HOLD_TURN: f64 = 0.05;
+/// Target heights above the ground, m, and horizontal distances from the shoulder, m.
+pub const HEIGHTS: [f64; 2] = [0.4, 1.7];
+pub const DISTANCES: [f64; 2] = [0.2, 0.7];
+/// Seconds to bring the hand out, to hold it, and to bring it back.
+pub const APPROACH: [f64; 2] = [0.4, 1.0];
+pub const HOLD: [f64; 2] = [0.3, 1.5];
+/// Most the torso leans, rad, and the pelvis drops (knees bent), m.
+pub const MAX_LEAN: f64 = 1.2;
+pub const MAX_DROP: f64 = 0.15;
+/// Seconds over which the walk slows before a reach and speeds up after it.
+const SLOWING: f64 = 1.0;
+/// How far the hips go back per unit of lean's sine (away from the target), m, and per metre
+/// of drop (behind the heels): a person leaning or crouching pushes the hips back to keep the
+/// weight over the feet, and the shins stay within the ankles' range.
+const HIPS_BACK: f64 = 0.12;
+const SQUAT_BACK: f64 = 0.4;
+/// Reach the arm is planned for, as a share of its length, less a margin for the drift while
+/// holding (m): the elbow stays bent and the hand on target as the walker creeps.
+const ARM_SHARE: f64 = 0.97;
+const DRIFT_MARGIN: f64 = 0.05;
+
+/// One reach of a hand, in the walker's heading frame at the middle of its hold.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Reach {
+    /// When the hand starts to move, s.
+    pub start: f64,
+    /// Seconds to the target, on it, and back.
+    pub approach: f64,
+    pub hold: f64,
+    pub back: f64,
+    /// 0 the left hand, 1 the right.
+    pub side: usize,
+    /// Target height above the ground, m.
+    pub height: f64,
+    /// Horizontal distance of the target from the standing shoulder, m.
+    pub distance: f64,
+    /// Direction of the target from the shoulder: 0 straight ahead, pi/2 out to the hand's side.
+    pub azimuth: f64,
+}
+
+fn smoothstep(s: f64) -> f64 {
+    let s = s.clamp(0.0, 1.0);
+    s * s * (3.0 - 2.0 * s)
+}
+
+impl Reach {
+    pub fn hold_start(&self) -> f64 {
+        self.start + self.approach
+    }
+
+    pub fn hold_end(&self) -> f64 {
+        self.hold_start() + self.hold
+    }
+
+    pub fn end(&self) -> f64 {
+        self.hold_end() + self.back
+    }
+
+    /// How far the hand is out at `t`: 0 before and after, 1 while holding, eased between.
+    pub fn weight(&self, t: f64) -> f64 {
+        smoothstep((t - self.start) / self.approach).min(smoothstep((self.end() - t) / self.back))
+    }
+
+    /// How much the walk is slowed at `t` (1: to [`HOLD_SPEED`]): over a second before the
+    /// hand moves and a second after it is back, so that the walker bends from short steps.
+    pub fn slowing(&self, t: f64) -> f64 {
+        smoothstep((t - self.start + SLOWING) / SLOWING).min(smoothstep((self.end() + SLOWING - t) / SLOWING))
+    }
+
+    /// The target relative to the standing shoulder, in the heading frame (height absolute).
+    fn offset(&self) -> DVec3 {
+        let sign = if self.side == 0 { 1.0 } else { -1.0 };
+        DVec3::new(self.distance * self.azimuth.cos(), sign * self.distance * self.azimuth.sin(), 0.0)
+    }
+
+    /// The target in the world for a walker at `root` facing `yaw` at the middle of the hold.
+    pub fn target(&self, root: DVec3, yaw: f64) -> DVec3 {
+        let shoulder = Trunk::standing(root, yaw, Bend::NONE).shoulder(self.side);
+        let mut t = shoulder + yaw_quat(yaw) * self.offset();
+        t.z = self.height;
+        t
+    }
+}
+
+/// How often hands reach in a generated clip, and the seed of their targets.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Reaching {
+    /// Share of the time a hand is out (approach, hold and return), 0-0.9.
+    pub share: f64,
+    pub seed: u64,
+}
+
+impl Reaching {
+    pub fn validate(&self) -> Result<(), MotionError> {
+        if !(self.share > 0.0 && self.share <= 0.9) {
+            return Err(MotionError::Invalid(format!("reach: share must be in (0, 0.9], not {}", self.share)));
+        }
+        Ok(())
+    }
+
+    /// Reaches over a clip of `duration` s, one at a time, each with a target the arm can get
+    /// to from a bend within [`MAX_LEAN`] and [`MAX_DROP`].
+    pub fn reaches(&self, duration: f64) -> Vec<Reach> {
+        // A stream of its own: walks with and without reaches share their walking commands.
+        let mut rng = rand::rngs::StdRng::seed_from_u64(self.seed ^ 0x7265_6163_6865_7321);
+        let mean_reach = APPROACH[0] + APPROACH[1] + 0.5 * (HOLD[0] + HOLD[1]);
+        let mean_gap = mean_reach * (1.0 - self.share) / self.share;
+        let mut out = Vec::new();
+        let mut t = rng.random_range(0.3..1.0_f64.max(mean_gap));
+        loop {
+            let r = loop {
+                let r = Reach {
+                    start: t,
+                    approach: rng.random_range(APPROACH[0]..APPROACH[1]),
+                    hold: rng.random_range(HOLD[0]..HOLD[1]),
+                    back: rng.random_range(APPROACH[0]..APPROACH[1]),
+                    side: rng.random_range(0..2),
+                    height: rng.random_range(HEIGHTS[0]..HEIGHTS[1]),
+                    distance: rng.random_range(DISTANCES[0]..DISTANCES[1]),
+                    azimuth: rng.random_range(0.0..FRAC_PI_2),
+                };
+                if reachable(&r) {
+                    break r;
+                }
+            };
+            if r.end() > duration - 0.1 {
+                return out;
+            }
+            t = r.end() + rng.random_range(0.5 * mean_gap..1.5 * mean_gap).max(0.3);
+            out.push(r);
+        }
+    }
+}
+
+/// Whether a standing walker reaches the target of `r` from some bend.
+pub fn reachable(r: &Reach) -> bool {
+    let target = r.target(DVec3::ZERO, 0.0);
+    let (bend, miss) = bend_for(target, r.side, |bend| Trunk::standing(DVec3::ZERO, 0.0, bend));
+    miss == 0.0 && bend.lean <= MAX_LEAN
+}
+
+/// How the upper body bends toward a target: the torso leans by `lean` toward the heading-frame
+/// direction `toward`, the pelvis drops by `drop` (the knees bend) and goes back.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Bend {
+    pub lean: f64,
+    pub toward: f64,
+    pub drop: f64,
+}
+
+impl Bend {
+    pub const NONE: Bend = Bend { lean: 0.0, toward: 0.0, drop: 0.0 };
+
+    /// This bend `w` of the way (0 upright, 1 all of it).
+    pub fn scaled(self, w: f64) -> Bend {
+        Bend { lean: w * self.lean, toward: self.toward, drop: w * self.drop }
+    }
+}
+
+/// The generator's pelvis and chest: where they are and how they are turned.
+pub struct Trunk {
+    pub pelvis: DVec3,
+    pub pelvis_rot: DQuat,
+    pub chest: DVec3,
+    pub chest_rot: DQuat,
+}
+
+/// Highest pelvis height while walking (legs slightly bent), m.
+pub const PELVIS_HEIGHT: f64 = 0.905;
+
+fn offset(b: usize) -> DVec3 {
+    DVec3::from_array(bodies()[b].offset)
+}
+
+impl Trunk {
+    /// The trunk of a walker standing at the ground point `root`, facing `yaw`, bent by `bend`.
+    pub fn standing(root: DVec3, yaw: f64, bend: Bend) -> Self {
+        Self::new(root + DVec3::Z * PELVIS_HEIGHT, yaw, 0.0, bend)
+    }
+
+    /// The trunk over the upright pelvis position `pelvis`, facing `yaw`, leaning `walk_lean`
+    /// forward into the walk, bent by `bend`.
+    pub fn new(pelvis: DVec3, yaw: f64, walk_lean: f64, bend: Bend) -> Self {
+        let heading = yaw_quat(yaw);
+        let toward = heading * DVec3::new(bend.toward.cos(), bend.toward.sin(), 0.0);
+        // The chest leans toward the target; the pelvis and the hips only for its forward part
+        // (tilted sideways, the pelvis would cross the thighs).
+        let ahead = bend.toward.cos().max(0.0);
+        let pelvis = pelvis - DVec3::Z * bend.drop
+            + heading * DVec3::new(-HIPS_BACK * ahead * bend.lean.sin() - SQUAT_BACK * bend.drop, 0.0, 0.0);
+        let pitch = DQuat::from_axis_angle(heading * DVec3::Y, 0.5 * ahead * bend.lean);
+        let pelvis_rot = pitch * heading * DQuat::from_rotation_y(0.5 * walk_lean);
+        let chest_rot =
+            DQuat::from_axis_angle(DVec3::Z.cross(toward), bend.lean) * heading * DQuat::from_rotation_y(walk_lean);
+        let chest = pelvis + pelvis_rot * (offset(body::TORSO) + offset(body::SPINE) + offset(body::CHEST));
+        Trunk { pelvis, pelvis_rot, chest, chest_rot }
+    }
+
+    /// The shoulder joint of a side (0 left, 1 right).
+    pub fn shoulder(&self, side: usize) -> DVec3 {
+        let mirror = DVec3::new(1.0, if side == 0 { 1.0 } else { -1.0 }, 1.0);
+        self.chest + self.chest_rot * ((offset(body::L_THORAX) + offset(body::L_SHOULDER)) * mirror)
+    }
+}
+
+/// Steepest forward tilt of a shin in a bend, rad: the ankle bends no further (it would lift
+/// the heel or the toe off the ground).
+const MAX_SHIN_TILT: f64 = 0.7;
+
+/// Whether the legs hold a bent trunk with the feet planted where an upright walker stands: the
+/// hips within the legs' reach of the ankles, the shins within [`MAX_SHIN_TILT`].
+fn legs_hold(upright: &Trunk, bent: &Trunk) -> bool {
+    let (thigh, shin) = (offset(body::L_KNEE).length(), offset(body::L_ANKLE).length());
+    let hip = offset(body::L_HIP);
+    let ankle_height = match bodies()[body::L_ANKLE].shape {
+        flowmimic_sim::skeleton::Shape::Box { center, half } => half[2] - center[2],
+        _ => unreachable!("the foot is a box"),
+    };
+    let forward = upright.pelvis_rot * DVec3::X;
+    [1.0, -1.0].into_iter().all(|sign| {
+        let side = DVec3::new(0.0, sign * hip.y, 0.0);
+        let mut ankle = upright.pelvis + upright.pelvis_rot * side;
+        ankle.z = ankle_height;
+        let hip = bent.pelvis + bent.pelvis_rot * (side + DVec3::Z * hip.z);
+        if hip.distance(ankle) > 0.98 * (thigh + shin) {
+            return false;
+        }
+        let knee = crate::generator::knee(hip, ankle, thigh, shin, forward);
+        (knee - ankle).normalize().dot(forward).asin() <= MAX_SHIN_TILT
+    })
+}
+
+/// Upper arm and forearm-with-hand lengths, m (the hand in line with the forearm, as the
+/// retargeting leaves the wrist).
+fn arm_bones() -> (f64, f64) {
+    (offset(body::L_ELBOW).length(), offset(body::L_WRIST).length() + offset(body::L_HAND).length())
+}
+
+/// The smallest bend from which the hand of `side` gets to `target`, and by how much it still
+/// misses (0 when it does not), searched on a grid of leans and drops that the legs hold.
+/// `trunk` builds the trunk for a bend.
+pub fn bend_for(target: DVec3, side: usize, trunk: impl Fn(Bend) -> Trunk) -> (Bend, f64) {
+    let (upper, lower) = arm_bones();
+    let reach = ARM_SHARE * (upper + lower) - DRIFT_MARGIN;
+    let upright = trunk(Bend::NONE);
+    let heading_frame = upright.pelvis_rot.conjugate() * (target - upright.pelvis);
+    let toward = heading_frame.y.atan2(heading_frame.x);
+    let (leans, drops) = (36, 14);
+    let mut best = (f64::MAX, f64::MAX, Bend::NONE);
+    for i in 0..=leans {
+        for j in 0..=drops {
+            let bend =
+                Bend { lean: MAX_LEAN * i as f64 / leans as f64, toward, drop: MAX_DROP * j as f64 / drops as f64 };
+            let bent = trunk(bend);
+            if !legs_hold(&upright, &bent) {
+                continue;
+            }
+            let miss = (bent.shoulder(side).distance(target) - reach).max(0.0);
+            let effort = (bend.lean / MAX_LEAN).powi(2) + (bend.drop / MAX_DROP).powi(2);
+            if (miss, effort) < (best.0, best.1) {
+                best = (miss, effort, bend);
+            }
+        }
+    }
+    (best.2, best.0)
+}
+
+/// Elbow and wrist of an arm from `shoulder` whose hand is at `hand` (or as near as the arm
+/// reaches), the elbow pointing toward `pole`.
+pub fn arm(shoulder: DVec3, hand: DVec3, pole: DVec3) -> (DVec3, DVec3) {
+    let (upper, lower) = arm_bones();
+    let elbow = crate::generator::knee(shoulder, hand, upper, lower, pole);
+    let wrist = elbow + (hand - elbow).normalize() * offset(body::L_WRIST).length();
+    (elbow, wrist)
+}

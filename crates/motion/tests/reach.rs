@@ -1,0 +1,130 @@
+//! Reaching in generated walks, checked on many random clips: during each hold the reference
+//! hand is on its target, the walk slows, the torso leans and the knees bend for low targets,
+//! the arm never passes through the torso (the simulator's own collision detection on the
+//! reference poses), and the walking invariants still hold.
+
+use flowmimic_geom::{heading, wrap_angle};
+use flowmimic_motion::generator::{self, Schedule};
+use flowmimic_motion::reach::{self, Reaching};
+use flowmimic_motion::{Clip, GaitParams, RetargetReport, WanderParams, clip::CONTACT_HEIGHT, generate, wander};
+use flowmimic_sim::skeleton::body;
+use flowmimic_sim::{CONTROL_HZ, Humanoid, SimConfig};
+use rand::{Rng, SeedableRng};
+use std::sync::Arc;
+
+const ARMS: [usize; 8] = [
+    body::L_SHOULDER,
+    body::L_ELBOW,
+    body::L_WRIST,
+    body::L_HAND,
+    body::R_SHOULDER,
+    body::R_ELBOW,
+    body::R_WRIST,
+    body::R_HAND,
+];
+const TORSO: [usize; 4] = [body::PELVIS, body::TORSO, body::SPINE, body::CHEST];
+const LEFT_LEG: [usize; 4] = [body::L_HIP, body::L_KNEE, body::L_ANKLE, body::L_TOE];
+const RIGHT_LEG: [usize; 4] = [body::R_HIP, body::R_KNEE, body::R_ANKLE, body::R_TOE];
+
+/// Reaching clips of every kind: wandering walks, constant walks at any speed and direction,
+/// and standing, each with its schedule and where the retargeting placed it.
+fn reaching_clips(h: &Arc<Humanoid>) -> Vec<(Clip, Schedule, RetargetReport)> {
+    let mut clips = Vec::new();
+    for seed in 1..=3 {
+        let p = WanderParams { seed, duration: 30.0, reach: Some(Reaching { share: 0.5, seed }), ..Default::default() };
+        let (clip, report) = wander(h, "reach", &p).unwrap();
+        clips.push((clip, p.schedule(), report));
+    }
+    let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+    for k in 0..8 {
+        let standing = k == 0;
+        let p = GaitParams {
+            speed: if standing { 0.0 } else { rng.random_range(-0.6..1.5) },
+            lateral: if standing { 0.0 } else { rng.random_range(-0.2..0.2) },
+            turn_rate: if standing { 0.0 } else { rng.random_range(-0.5..0.5) },
+            heading: rng.random_range(-3.0..3.0),
+            duration: 15.0,
+            reach: Some(Reaching { share: 0.7, seed: k }),
+            ..Default::default()
+        };
+        let (clip, report) = generate(h, "reach", &p).unwrap();
+        clips.push((clip, p.schedule(), report));
+    }
+    clips
+}
+
+#[test]
+fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
+    let h = Humanoid::new(SimConfig::default()).unwrap();
+    let mut env = h.env();
+    let (mut reaches, mut lowest, mut highest) = (0, f64::MAX, 0.0_f64);
+    for (n, (clip, schedule, report)) in reaching_clips(&h).iter().enumerate() {
+        let targets = generator::reach_targets(schedule);
+        assert!(!targets.is_empty(), "clip {n} has no reach");
+        for (r, target) in schedule.reaches.iter().zip(&targets) {
+            reaches += 1;
+            let what = format!("clip {n}, reach at {:.1} s ({r:?})", r.start);
+            assert!((reach::HEIGHTS[0]..=reach::HEIGHTS[1]).contains(&r.height), "{what}");
+            assert!((reach::DISTANCES[0]..=reach::DISTANCES[1]).contains(&r.distance), "{what}");
+            assert!((0.4..=1.0).contains(&r.approach) && (0.3..=1.5).contains(&r.hold), "{what}");
+            let hand = [body::L_HAND, body::R_HAND][r.side];
+            let hold = (r.hold_start() * CONTROL_HZ).ceil() as usize..=(r.hold_end() * CONTROL_HZ).floor() as usize;
+            let mut worst = 0.0_f64;
+            for t in hold.clone() {
+                let goal = report.placement.apply(t, *target);
+                worst = worst.max(clip.bodies[t].pos[hand].distance(goal));
+                // The walk slows to a creep while the hand is out.
+                let v = clip.bodies[t].lin_vel[body::PELVIS].truncate().length();
+                assert!(v < reach::HOLD_SPEED + 0.1, "{what}: frame {t}: the pelvis moves at {v:.2} m/s");
+            }
+            assert!(worst < 0.02, "{what}: the hand is {:.1} cm from its target during the hold", 100.0 * worst);
+            lowest = lowest.min(r.height);
+            highest = highest.max(r.height);
+            // Low targets are reached by bending: the pelvis lower or the chest tilted.
+            let mid = &clip.bodies[(*hold.start() + *hold.end()) / 2];
+            let tilt = (mid.rot[body::CHEST] * flowmimic_geom::DVec3::Z).z.acos().to_degrees();
+            if r.height < 0.6 {
+                assert!(
+                    tilt > 20.0 && mid.pos[body::PELVIS].z < 0.85,
+                    "{what}: reaching low with the chest tilted {tilt:.0} deg, the pelvis {:.2} m high",
+                    mid.pos[body::PELVIS].z
+                );
+            }
+        }
+        let mut stance_speeds = Vec::new();
+        for (t, k) in clip.bodies.iter().enumerate() {
+            let what = format!("clip {n}, frame {t}");
+            // The chest and head face within 30 degrees of the pelvis (25 when walking: leaning
+            // toward a target out to the side turns a body's forward axis a little).
+            let pelvis = heading(k.rot[body::PELVIS]);
+            for b in [body::CHEST, body::HEAD] {
+                let off = wrap_angle(heading(k.rot[b]) - pelvis).to_degrees();
+                assert!(off.abs() < 30.0, "{what}: body {b} faces {off:.0} deg from the pelvis");
+            }
+            env.reset(&clip.qpos[t], &clip.qvel[t]).unwrap();
+            for (a, b) in env.self_contacts() {
+                let legs = (LEFT_LEG.contains(&a) && RIGHT_LEG.contains(&b))
+                    || (RIGHT_LEG.contains(&a) && LEFT_LEG.contains(&b));
+                assert!(!legs, "{what}: legs {a} and {b} touch");
+                let arm_in_torso =
+                    (ARMS.contains(&a) && TORSO.contains(&b)) || (TORSO.contains(&a) && ARMS.contains(&b));
+                assert!(!arm_in_torso, "{what}: arm and torso bodies {a} and {b} touch");
+            }
+            for (side, [ankle, toe]) in [[body::L_ANKLE, body::L_TOE], [body::R_ANKLE, body::R_TOE]].iter().enumerate()
+            {
+                let [heel_z, toe_z] = env.foot_bottoms()[side];
+                if heel_z.min(toe_z) < CONTACT_HEIGHT {
+                    let part = if toe_z < heel_z { *toe } else { *ankle };
+                    stance_speeds.push(k.lin_vel[part].truncate().length());
+                }
+            }
+        }
+        let mean = stance_speeds.iter().sum::<f64>() / stance_speeds.len() as f64;
+        assert!(mean < 0.05, "clip {n}: feet on the ground move at {mean:.3} m/s on average");
+        let q = clip.quality(&h);
+        assert!(q.penetration_max < 0.01 && q.airborne == 0.0, "clip {n}: {q:?}");
+    }
+    assert!(reaches >= 40, "only {reaches} reaches");
+    // Targets span the range, from near the floor to above the head.
+    assert!(lowest < 0.55 && highest > 1.55, "targets {lowest:.2}-{highest:.2} m high");
+}
