@@ -14,8 +14,8 @@ run: $(MUJOCO)
 # Minutes instead of an hour: the shipped models walk on a joystick and reach.
 demo: $(MUJOCO)
 	cargo run --release -- demo
-	cargo run --release -- render runs/demo/joystick.rollout.safetensors
-	cargo run --release -- render runs/demo/reach.rollout.safetensors
+	cargo run --release -- render runs/demo/joystick.rollout.safetensors -o runs/demo/joystick.gif
+	cargo run --release -- render runs/demo/reach.rollout.safetensors -o runs/demo/reach.gif
 
 test: $(MUJOCO) $(PYDEPS) chromium
 	cargo test --workspace

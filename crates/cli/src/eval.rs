@@ -15,7 +15,8 @@ use std::sync::Arc;
 
 #[derive(Args, Clone)]
 pub struct Common {
-    /// Models as LABEL=DIR (repeat); default fm=runs/model/fm and ddpm=runs/model/ddpm.
+    /// Models as LABEL=DIR (repeat); default the one `make run` trained, else the shipped
+    /// guidance model.
     #[arg(long = "model")]
     models: Vec<String>,
     /// Output directory for CSV, JSON, plots and report.md.
@@ -25,7 +26,7 @@ pub struct Common {
     #[arg(long)]
     quick: bool,
     /// Trials per point (default: the protocol's, or its quick count).
-    #[arg(long)]
+    #[arg(long, value_parser = crate::args::count)]
     trials: Option<usize>,
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -56,7 +57,7 @@ pub enum EvalCommand {
         #[arg(long, value_delimiter = ',', default_value = "1,2,5,10,20")]
         nfe: Vec<usize>,
         /// Episode cap in seconds (default 1000 steps; quick 10 s).
-        #[arg(long)]
+        #[arg(long, allow_negative_numbers = true, value_parser = crate::args::seconds)]
         seconds: Option<f64>,
     },
     /// Forward, backward, turn left, turn right, 3 s each (paper Fig. 3): velocity RMSE
@@ -150,10 +151,17 @@ pub enum EvalCommand {
         #[arg(long)]
         guided: Option<f32>,
     },
+    /// What a saved rollout (`flowmimic run`, `play`'s record button, `demo`) achieved: each
+    /// joystick segment's speeds against the asked ones and in how many environments it was
+    /// followed, the hand's closest approach, the way to the goal, the falls.
+    Outcome {
+        /// A .rollout.safetensors file.
+        rollout: PathBuf,
+    },
 }
 
 fn load_models(specs: &[String]) -> Result<Vec<EvalModel>> {
-    let defaults = ["fm", "ddpm"].map(|o| format!("{o}={}", crate::model::default_out(o).display()));
+    let defaults = [format!("fm={}", crate::paths::model_or_default(None).display())];
     let specs = if specs.is_empty() { &defaults[..] } else { specs };
     specs
         .iter()
@@ -202,6 +210,12 @@ fn with_progress(steps: usize, f: &Trials) -> Rows {
 
 pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     let common = match &cmd {
+        EvalCommand::Outcome { rollout } => {
+            let r = flowmimic_control::Rollout::load(rollout)?;
+            crate::run::print_outcome(&flowmimic_eval::outcome::Outcome::of(&r));
+            return Ok(());
+        }
+
         EvalCommand::Survival { common, .. }
         | EvalCommand::Joystick { common, .. }
         | EvalCommand::Reach { common, .. }
@@ -243,5 +257,6 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         EvalCommand::Quality { dataset, nfe, .. } => study.quality(dataset, nfe),
         EvalCommand::Latency { nfe, guided, .. } => study.latency(nfe, *guided),
         EvalCommand::Guidance { scales, nfe, samples, .. } => study.guidance(scales, *nfe, *samples),
+        EvalCommand::Outcome { .. } => unreachable!("printed above, without models"),
     })
 }

@@ -2,6 +2,7 @@
 //!
 //! This file only parses arguments and calls the stage crates.
 
+mod args;
 mod config;
 mod data;
 mod demo;
@@ -9,6 +10,7 @@ mod eval;
 mod export;
 mod model;
 mod motion;
+mod paths;
 mod pipeline;
 mod progress;
 mod run;
@@ -55,9 +57,9 @@ enum Command {
     /// The shipped FM guidance model walks on a joystick schedule, then reaches with its right
     /// hand while walking: rollouts, plots and metrics in seconds.
     Demo {
-        /// Model directory.
-        #[arg(long, default_value = "pretrained/models/fm")]
-        model: PathBuf,
+        /// Model directory (default: the one `make run` trained, else the shipped one).
+        #[arg(long)]
+        model: Option<PathBuf>,
         #[arg(short, long, default_value = "runs/demo")]
         out: PathBuf,
         /// Network evaluations per control step (the guidance model steers best at 2).
@@ -150,7 +152,7 @@ enum Command {
     /// offscreen, to an animated GIF or an MP4 (needs ffmpeg), plus a contact sheet PNG.
     Render {
         file: PathBuf,
-        /// Output .gif or .mp4; default next to the input.
+        /// Output .gif or .mp4; default runs/render/<name>.gif.
         #[arg(short, long)]
         out: Option<PathBuf>,
         /// Which environment of a rollout.
@@ -179,9 +181,10 @@ enum Command {
     /// serves a page on 127.0.0.1 (WASD or arrows walk, Q/E turn, a gamepad's sticks do the same;
     /// click the ground for a waypoint; place a hand target; push, reset, record). Ctrl-C stops it.
     Play {
-        /// Model directory (`flowmimic train` writes it; default: the shipped FM guidance model).
-        #[arg(long, default_value = "pretrained/models/fm")]
-        model: PathBuf,
+        /// Model directory (`flowmimic train` writes it; default: the one `make run` trained,
+        /// else the shipped guidance model).
+        #[arg(long)]
+        model: Option<PathBuf>,
         /// Port on 127.0.0.1 (0: any free one).
         #[arg(long, default_value_t = 8000)]
         port: u16,
@@ -247,7 +250,7 @@ enum SimCommand {
     /// Simulate the free humanoid holding its nominal pose (zero action) and report.
     Hold {
         /// Simulated seconds.
-        #[arg(long, default_value_t = 5.0)]
+        #[arg(long, default_value_t = 5.0, allow_negative_numbers = true, value_parser = args::seconds)]
         seconds: f64,
         /// Planar push (m/s, world x) at the start, to watch it topple.
         #[arg(long, default_value_t = 0.0)]
@@ -282,6 +285,12 @@ enum BenchCommand {
 }
 
 fn main() {
+    // Die quietly on a closed pipe (`flowmimic ... | head`), as command-line tools do, instead
+    // of panicking in println!: Rust ignores SIGPIPE by default.
+    // SAFETY: sets the default disposition of one signal before any thread starts.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     let cli = Cli::parse();
     if let Err(e) = run(cli) {
         eprintln!("error: {e:#}");
@@ -298,7 +307,7 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Dataset(cmd) => data::run_dataset(cmd)?,
         Command::Demo { model, out, nfe, inverse_dynamics } => {
-            demo::run(&model, &out, nfe, inverse_dynamics, &Humanoid::new(config.sim)?)?
+            demo::run(&paths::model_or_default(model), &out, nfe, inverse_dynamics, &Humanoid::new(config.sim)?)?
         }
         Command::Pipeline { out, clip } => pipeline::run(&config, &cli.settings.preset, &out, &clip)?,
         Command::Render { file, out, env, width, height, fps } => {
@@ -307,6 +316,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::View { file, env, port } => viz::view(&Humanoid::new(config.sim)?, &file, env, port)?,
         Command::Play { model, port, nfe, guidance_scale, guidance, clip, record_dir } => {
             let control = guidance.apply(ControlConfig { paced: true, ..ControlConfig::new(nfe, guidance_scale, 0.0) });
+            let model = paths::model_or_default(model);
             run::play(&Humanoid::new(config.sim)?, &model, port, control, clip.as_deref(), record_dir)?
         }
         Command::Eval(cmd) => eval::run(cmd, &Humanoid::new(config.sim)?)?,

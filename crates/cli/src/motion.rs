@@ -118,10 +118,13 @@ pub enum MotionCommand {
         out: PathBuf,
     },
     /// Print the quality table of clip files and their coverage: how much walks backward, turns
-    /// and sidesteps, with histograms (coverage_*.png/svg beside the first file).
+    /// and sidesteps, with histograms (coverage_*.png/svg in --out).
     Inspect {
         #[arg(required = true)]
         files: Vec<PathBuf>,
+        /// Directory for the histograms.
+        #[arg(short, long, default_value = "runs/inspect")]
+        out: PathBuf,
     },
 }
 
@@ -234,9 +237,18 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 ),
             };
             let options = ImportOptions { units, up, cyclic: cyclic.then_some(true), name: None, map };
-            let mut clips = Vec::new();
+            // A bad file is reported and skipped: the others are still imported.
+            let (mut clips, mut failed) = (Vec::new(), Vec::new());
             for file in &files {
-                let im = flowmimic_motion::import(humanoid, file, &options)?;
+                let im = match flowmimic_motion::import(humanoid, file, &options) {
+                    Ok(im) => im,
+                    Err(e) if files.len() == 1 => return Err(e.into()),
+                    Err(e) => {
+                        eprintln!("error: {e}");
+                        failed.push(file.display().to_string());
+                        continue;
+                    }
+                };
                 let path = clip_path(&out, &im.clip.name);
                 im.clip.save(&path)?;
                 println!(
@@ -257,8 +269,13 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 }
                 clips.push(im.clip);
             }
-            header();
-            clips.iter().for_each(|c| row(humanoid, c));
+            if !clips.is_empty() {
+                header();
+                clips.iter().for_each(|c| row(humanoid, c));
+            }
+            if !failed.is_empty() {
+                bail!("{} of {} files could not be imported: {}", failed.len(), files.len(), failed.join(", "));
+            }
         }
         MotionCommand::Generate { gait, count, wander, transitions, reach, schedule, seed, name, out } => {
             let reaching = |seed| reach.map(|share| Reaching { share, seed });
@@ -320,7 +337,7 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
             }
             println!("written to {}", out.display());
         }
-        MotionCommand::Inspect { files } => {
+        MotionCommand::Inspect { files, out } => {
             header();
             let mut velocities = Vec::new();
             for file in &files {
@@ -328,8 +345,7 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 row(humanoid, &clip);
                 velocities.push(clip.walking_velocities());
             }
-            let dir = files[0].parent().unwrap_or(Path::new("."));
-            print_coverage(&Coverage::of_walks(velocities), dir)?;
+            print_coverage(&Coverage::of_walks(velocities), &out)?;
         }
     }
     Ok(())

@@ -3,6 +3,9 @@
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use flowmimic_control::{Adaptive, ControlConfig, Hand, JoystickSegment, Rollout, StepReport, Task};
+use flowmimic_eval::HAND_REACHED;
+use flowmimic_eval::outcome::{FOLLOWED_SPEED, FOLLOWED_YAW_RATE, Outcome};
+use flowmimic_eval::protocols::SEGMENT_SETTLE;
 use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_serve::play::PlayConfig;
@@ -26,9 +29,10 @@ pub enum TaskKind {
 
 #[derive(Args)]
 pub struct RunArgs {
-    /// Model directory (`flowmimic train` writes it).
-    #[arg(long, default_value = "runs/model/fm")]
-    pub model: PathBuf,
+    /// Model directory (`flowmimic train` writes it; default: the one `make run` trained, else
+    /// the shipped guidance model).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
     #[arg(long, value_enum, default_value_t = TaskKind::Walk)]
     pub task: TaskKind,
     /// Joystick schedule: `seconds:vx,vy,yaw_rate` segments separated by `;` (character frame:
@@ -58,14 +62,15 @@ pub struct RunArgs {
     pub guidance_scale: f32,
     #[command(flatten)]
     pub guidance: GuidanceArgs,
-    #[arg(long, default_value_t = 10.0)]
-    pub seconds: f64,
+    /// Simulated seconds (default: the joystick schedule's length, else 10 s).
+    #[arg(long, allow_negative_numbers = true, value_parser = crate::args::seconds)]
+    pub seconds: Option<f64>,
     /// Actions of each sampled trajectory to execute before sampling again (1 = the paper's
     /// receding horizon, up to H + 1).
     #[arg(long, default_value_t = 1)]
     pub execute: usize,
     /// Environments run at once (one batched model call per step).
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = crate::args::envs)]
     pub envs: usize,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -178,7 +183,7 @@ impl RunArgs {
             Some(s) => schedule(s)?,
             None => Task::joystick_eval().joystick,
         };
-        let walk_on = vec![JoystickSegment { seconds: self.seconds, ..joystick[0] }];
+        let walk_on = vec![JoystickSegment { seconds: self.seconds(), ..joystick[0] }];
         let task = match self.task {
             TaskKind::Walk => Task::walk(),
             TaskKind::Joystick => Task { joystick, ..Task::walk() },
@@ -196,14 +201,47 @@ impl RunArgs {
         Ok(task)
     }
 
+    /// How long to run: `--seconds`, else the joystick schedule's length for a joystick task,
+    /// else 10 s.
+    pub fn seconds(&self) -> f64 {
+        let schedule = || match &self.schedule {
+            Some(s) => schedule(s).ok().map(|segs| segs.iter().map(|s| s.seconds).sum()),
+            None => Some(Task::joystick_eval().joystick.iter().map(|s| s.seconds).sum()),
+        };
+        match (self.seconds, self.task) {
+            (Some(s), _) => s,
+            (None, TaskKind::Joystick) => schedule().unwrap_or(10.0),
+            (None, _) => 10.0,
+        }
+    }
+
     pub fn control(&self) -> ControlConfig {
-        let plain = ControlConfig::new(self.nfe, self.guidance_scale, self.seconds);
+        let plain = ControlConfig::new(self.nfe, self.guidance_scale, self.seconds());
         self.guidance.apply(ControlConfig { execute: self.execute, paced: self.paced, seed: self.seed, ..plain })
     }
 }
 
-/// A model directory, refused when its states and actions are not this humanoid's.
+/// A model directory, refused when its states and actions are not this humanoid's, or when it
+/// is not a model at all.
 pub fn load_model(dir: &Path) -> Result<TrajectoryModel> {
+    if !dir.join("model.safetensors").exists() {
+        if dir.join(crate::track::RUN_POLICY).exists() {
+            bail!(
+                "{} is a tracking expert (`flowmimic track train` writes those), not a trajectory model \
+                 (`flowmimic train` writes model.safetensors): e.g. --model {}",
+                dir.display(),
+                crate::paths::SHIPPED_MODEL
+            );
+        }
+        if !dir.is_dir() {
+            bail!(
+                "{}: no such model directory (`flowmimic train` makes one; the shipped one is --model {}, \
+                 found from the checkout or beside the binary)",
+                dir.display(),
+                crate::paths::shipped(crate::paths::SHIPPED_MODEL).display()
+            );
+        }
+    }
     let model = TrajectoryModel::load(dir).with_context(|| format!("loading model {}", dir.display()))?;
     let ours = crate::model::layout(&model.config);
     model.check_layout(&ours, "this humanoid").with_context(|| format!("model {}", dir.display()))?;
@@ -219,9 +257,24 @@ pub fn start_clip(humanoid: &Arc<Humanoid>, file: Option<&Path>) -> Result<Clip>
 }
 
 pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
-    let model = load_model(&args.model)?;
+    let model_dir = crate::paths::model_or_default(args.model.clone());
+    let model = load_model(&model_dir)?;
     let task = args.task()?;
     let control = args.control();
+    if args.task == TaskKind::Joystick {
+        let length: f64 = task.joystick.iter().map(|s| s.seconds).sum();
+        if control.seconds < length - 1e-9 {
+            eprintln!(
+                "note: the schedule is {length} s long; --seconds {} runs its first {} s",
+                control.seconds, control.seconds
+            );
+        } else if control.seconds > length + 1e-9 {
+            eprintln!(
+                "note: the schedule is {length} s long; its last segment holds for the {:.1} s after",
+                control.seconds - length
+            );
+        }
+    }
     let clip = start_clip(humanoid, args.clip.as_deref())?;
     let name = format!("{:?}", args.task).to_lowercase();
     let out = args.out.clone().unwrap_or_else(|| PathBuf::from("runs/run").join(format!("{name}.rollout.safetensors")));
@@ -251,26 +304,81 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
         &model,
         humanoid,
         &clip,
-        vec![task; args.envs.max(1)],
+        vec![task; args.envs],
         &control,
-        &args.model.display().to_string(),
+        &model_dir.display().to_string(),
         status,
     )?;
     rollout.save(&out)?;
-    summarise(&rollout);
+    print_outcome(&Outcome::of(&rollout));
+    print_timing(&rollout);
     eprintln!("wrote {}", out.display());
     Ok(())
 }
 
-/// Falls and timing medians of a rollout.
-fn summarise(r: &Rollout) {
-    let fell = (0..r.envs).filter(|&e| r.fell(e)).count();
+/// Per joystick segment, the speeds asked and achieved (the range over environments) and how
+/// many environments followed it; the hand's closest approach; the way to the goal; falls.
+pub(crate) fn print_outcome(o: &Outcome) {
+    if !o.segments.is_empty() {
+        println!(
+            "joystick, after {SEGMENT_SETTLE} s into each segment (followed: within {FOLLOWED_SPEED} m/s and \
+             {FOLLOWED_YAW_RATE} rad/s, no fall)"
+        );
+        println!(
+            "  {:<22} {:<17} {:<17} {:<17} {:>8}",
+            "asked (fwd, left, yaw)", "forward m/s", "sideways m/s", "yaw rate rad/s", "followed"
+        );
+        for s in &o.segments {
+            let range = |i: usize| {
+                let (lo, hi) = s.achieved.iter().fold((f64::MAX, f64::MIN), |(lo, hi), a| (lo.min(a[i]), hi.max(a[i])));
+                if s.achieved.len() == 1 { format!("{lo:+.2}") } else { format!("{lo:+.2} to {hi:+.2}") }
+            };
+            println!(
+                "  {:<22} {:<17} {:<17} {:<17} {:>8}",
+                format!("{:+.1}, {:+.1}, {:+.1}", s.asked[0], s.asked[1], s.asked[2]),
+                range(0),
+                range(1),
+                range(2),
+                format!("{}/{}", s.followed, s.achieved.len())
+            );
+        }
+    }
+    if !o.reach.is_empty() {
+        let min: Vec<f64> = o.reach.iter().map(|t| t.min).collect();
+        let reached = o.reach.iter().filter(|t| t.reached()).count();
+        println!(
+            "reach: the hand came within {HAND_REACHED} m of its target in {reached} of {}; closest {}",
+            min.len(),
+            list(&min, "m")
+        );
+    }
+    if !o.waypoint.is_empty() {
+        let arrived = o.waypoint.iter().filter(|t| t.arrival.is_some()).count();
+        let last: Vec<f64> = o.waypoint.iter().map(|t| t.last).collect();
+        println!(
+            "waypoint: the pelvis came within 0.5 m of the goal in {arrived} of {}; distance at the end {}",
+            last.len(),
+            list(&last, "m")
+        );
+    }
+    println!("{} of {} environments fell", o.fell, o.envs);
+}
+
+/// Values with a unit, all of them for a few, else their range.
+fn list(values: &[f64], unit: &str) -> String {
+    if values.len() <= 8 {
+        values.iter().map(|v| format!("{v:.2}")).collect::<Vec<_>>().join(", ") + " " + unit
+    } else {
+        let (lo, hi) = values.iter().fold((f64::MAX, f64::MIN), |(lo, hi), v| (lo.min(*v), hi.max(*v)));
+        format!("{lo:.2} to {hi:.2} {unit}")
+    }
+}
+
+/// Timing medians of a rollout.
+fn print_timing(r: &Rollout) {
     let (m, p) = r.median_ms();
     println!(
-        "{} of {} environments fell; per control step (median, whole batch): model {m:.1} ms, physics {p:.1} ms, \
-         {:.0} Hz achievable ({})",
-        fell,
-        r.envs,
+        "per control step (median, whole batch): model {m:.1} ms, physics {p:.1} ms, {:.0} Hz achievable ({})",
         1e3 / (m + p),
         if f64::from(1e3 / (m + p)) >= flowmimic_sim::CONTROL_HZ { "real time" } else { "slower than real time" }
     );

@@ -25,9 +25,10 @@ pub enum TrackCommand {
         #[arg(short, long)]
         out: Option<PathBuf>,
         /// Iterations (overrides the preset's track.iterations).
-        #[arg(long)]
+        #[arg(long, value_parser = crate::args::count)]
         iterations: Option<usize>,
-        /// Continue from <out>/policy.safetensors with its optimiser state and counters.
+        /// Continue from <out>/policy.safetensors with its optimiser state and counters, on the
+        /// run's own clips unless --clip names them.
         #[arg(long, conflicts_with = "init")]
         resume: bool,
         /// Start from another run's policy (its directory or policy file): weights, action
@@ -46,7 +47,7 @@ pub enum TrackCommand {
     Eval {
         /// The run directory (policy.safetensors and clip.safetensors).
         run: PathBuf,
-        #[arg(long, default_value_t = 100)]
+        #[arg(long, default_value_t = 100, value_parser = crate::args::count)]
         episodes: usize,
         /// Evaluate on these clip files instead of the run's own.
         #[arg(long, num_args = 1..)]
@@ -69,6 +70,15 @@ pub(crate) fn run_clip_file(k: usize) -> String {
 
 /// All clips of a run directory, in training order.
 pub(crate) fn run_clips(humanoid: &Arc<Humanoid>, run: &Path) -> Result<Vec<Clip>> {
+    if !run.join(run_clip_file(0)).exists() {
+        anyhow::bail!(
+            "{} has no {}: its clips are not shipped with it; pass them with --clip (the shipped corpus \
+             experts' clips are made by `flowmimic motion corpus --walking-only -o runs/corpus`, e.g. \
+             --clip runs/corpus/wander_3.clip.safetensors)",
+            run.display(),
+            run_clip_file(0)
+        );
+    }
     let mut clips = Vec::new();
     while clips.is_empty() || run.join(run_clip_file(clips.len())).exists() {
         clips.push(Clip::load(humanoid, &run.join(run_clip_file(clips.len())))?);
@@ -103,10 +113,21 @@ pub(crate) fn load_clips(humanoid: &Arc<Humanoid>, files: &[PathBuf]) -> Result<
 pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) -> Result<()> {
     match cmd {
         TrackCommand::Train { clip, out, iterations, resume, init } => {
-            let clips = load_clips(humanoid, &clip)?;
-            let out = out.unwrap_or_else(|| PathBuf::from("runs/track").join(&clips[0].name));
+            let (clips, out) = match out {
+                // A resumed run tracks the clips it saved, unless told otherwise.
+                Some(out) if resume && clip.is_empty() => (run_clips(humanoid, &out)?, out),
+                Some(out) => (load_clips(humanoid, &clip)?, out),
+                None => {
+                    let clips = load_clips(humanoid, &clip)?;
+                    let out = PathBuf::from("runs/track").join(&clips[0].name);
+                    (clips, out)
+                }
+            };
             if let Some(n) = iterations {
                 cfg.iterations = n;
+            }
+            if cfg.iterations == 0 {
+                anyhow::bail!("track.iterations is 0: a run needs at least one iteration");
             }
             let start = match (resume, init) {
                 (true, _) => Start::Resume,
@@ -127,7 +148,7 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
             let clips = if clip.is_empty() { run_clips(humanoid, &run)? } else { load_clips(humanoid, &clip)? };
             // One JSON line per clip, so that a failing clip cannot hide behind an average.
             for clip in clips {
-                let setup = EvalSetup { episodes: episodes.max(1), start_frame, kicks, seed: 12345 };
+                let setup = EvalSetup { episodes, start_frame, kicks, seed: 12345 };
                 let report = evaluate(humanoid, &policy_net, &clip, &cfg, setup)?;
                 println!("{}", serde_json::to_string(&report)?);
             }

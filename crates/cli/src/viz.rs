@@ -42,7 +42,7 @@ pub fn render(
         Source::Clip(clip) => Frames::from_clip(clip),
         Source::Rollout(r, env) => Frames::from_rollout(r, *env, &stem),
     };
-    let out = out.unwrap_or_else(|| file.with_file_name(format!("{stem}.gif")));
+    let out = out.unwrap_or_else(|| PathBuf::from("runs/render").join(format!("{stem}.gif")));
     let r = flowmimic_viz::render(humanoid, &frames, &out, size, fps)?;
     let files: Vec<String> = r.files.iter().map(|f| f.display().to_string()).collect();
     println!(

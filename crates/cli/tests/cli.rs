@@ -25,6 +25,9 @@ fn stages_connect_through_their_files() {
         &["track", "train", "--clip", "clips/w.clip.safetensors", "-o", "run", "--resume", "--iterations", "3"],
     );
     assert!(resumed.contains("resumed") && resumed.contains("[    3/3]"), "{resumed}");
+    // Without --clip, a resumed run tracks its own clip.
+    let resumed = ok(&dir, &["track", "train", "-o", "run", "--resume", "--iterations", "4"]);
+    assert!(resumed.contains("resumed") && resumed.contains("[    4/4]"), "{resumed}");
     let warm = ok(
         &dir,
         &["track", "train", "--clip", "clips/w.clip.safetensors", "-o", "warm", "--init", "run", "--iterations", "1"],
@@ -61,7 +64,8 @@ fn stages_connect_through_their_files() {
     assert!(inspect.contains("backward") && dir.join("data/coverage_yaw_rate.png").exists(), "{inspect}");
     // Coverage and falls per clip as well as in total.
     let per_clip = inspect.lines().filter(|l| l.starts_with("w ") && l.ends_with('%')).count();
-    assert!(inspect.contains("sidestepping  fall rate") && per_clip == 1, "{inspect}");
+    assert!(inspect.contains("sidestepping  reversing  fall rate") && per_clip == 1, "{inspect}");
+    assert!(inspect.contains("higher hand's height") && inspect.contains("a hand above 1.1 m in"), "{inspect}");
     let stats = ok(&dir, &["dataset", "stats", "data", "--history", "2", "--horizon", "3"]);
     assert!(stats.contains("windows") && dir.join("data/stats-N2-H3.safetensors").exists(), "{stats}");
     trajectory_model_trains_resumes_and_drives(&dir);
@@ -153,7 +157,10 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     // says what to install.
     let (rendered, text) = flowmimic(dir, &["render", "fm.rollout.safetensors", "--width", "64", "--height", "48"]);
     if rendered {
-        assert!(dir.join("fm.rollout.gif").exists() && dir.join("fm.rollout_sheet.png").exists(), "{text}");
+        assert!(
+            dir.join("runs/render/fm.rollout.gif").exists() && dir.join("runs/render/fm.rollout_sheet.png").exists(),
+            "{text}"
+        );
     } else {
         assert!(text.contains("libegl1"), "{text}");
         eprintln!("rendering not checked here: {text}");
@@ -266,6 +273,77 @@ fn bad_input_is_a_clear_error_not_a_crash() {
     let fm = format!("fm={}", concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/models/fm"));
     let (success, text) = flowmimic(&dir, &["eval", "reach", "--model", &fm, "--heights", "1.5,0.9", "--quick"]);
     assert!(!success && text.contains("--heights") && text.contains("LOW <= HIGH"), "{text}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// What a newcomer tripped on, trying the binary from a folder outside the checkout: numbers
+/// that mean nothing are refused at the command line, files of the wrong kind are named with
+/// the kind expected and the command that makes it, one bad file does not stop the others, a
+/// cause is said once, outputs land under runs/, a closed pipe ends the command quietly, and
+/// the shipped model is found from anywhere.
+#[test]
+fn a_newcomers_mistakes_get_clear_answers() {
+    let dir = workdir("newcomer");
+    let refused = |args: &[&str], words: &[&str]| {
+        let (success, text) = flowmimic(&dir, args);
+        assert!(!success, "{args:?} succeeded:\n{text}");
+        for w in words {
+            assert!(text.contains(w), "{args:?}: no '{w}' in:\n{text}");
+        }
+        text
+    };
+    refused(&["run", "--seconds", "-2"], &["-2 s", "above 0"]);
+    refused(&["sim", "hold", "--seconds=-1"], &["-1 s", "above 0"]);
+    refused(&["run", "--envs", "0"], &["0 environments", "1 to 4096"]);
+    refused(&["run", "--envs", "100000"], &["100000 environments"]);
+    refused(&["track", "train", "--iterations", "0"], &["at least 1"]);
+    // Files of the wrong kind.
+    std::fs::write(dir.join("picture.png"), b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR").unwrap();
+    refused(&["motion", "import", "picture.png"], &["picture.png", "not a BVH or DeepMimic", "PNG image"]);
+    let bvh = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/mocap/02_01.bvh");
+    let bvh = bvh.to_str().unwrap();
+    refused(&["render", bvh], &["BVH motion capture", "motion import"]);
+    refused(&["track", "train", "--clip", bvh], &["not a clip", "BVH motion capture", "motion import"]);
+    let shipped = |p: &str| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../pretrained").join(p);
+    let expert = shipped("experts/walk_straight");
+    refused(&["run", "--model", expert.to_str().unwrap()], &["tracking expert", "not a trajectory model"]);
+    let wander = shipped("experts/wander_3");
+    refused(&["track", "eval", wander.to_str().unwrap()], &["--clip", "motion corpus"]);
+    // One bad file is reported once and the good one still imported.
+    std::fs::write(dir.join("bad.bvh"), "HIERARCHY\nROOT Hips\n{\n OFFSET 0 0\n").unwrap();
+    let text = refused(&["motion", "import", "bad.bvh", bvh, "-o", "clips"], &["1 of 2 files"]);
+    assert!(dir.join("clips/02_01.clip.safetensors").exists(), "{text}");
+    let (_, single) = flowmimic(&dir, &["motion", "import", "bad.bvh"]);
+    let cause = single.lines().find(|l| l.contains("line")).unwrap_or_default().to_string();
+    assert_eq!(single.matches("line ").count(), 1, "the cause is said once: {single}");
+    assert!(!cause.is_empty(), "{single}");
+    // Outputs land under runs/, not beside a (maybe shipped) input.
+    ok(&dir, &["motion", "inspect", "clips/02_01.clip.safetensors"]);
+    assert!(dir.join("runs/inspect/coverage_forward.png").exists() && !dir.join("clips/coverage_forward.png").exists());
+    // The shipped model from a folder outside the checkout, without --model; a pipe closed
+    // before the output ends the command as SIGPIPE does (`flowmimic run | head`), not with
+    // a panic.
+    let mut child = common::command(&dir, &["run", "--task", "joystick", "--seconds", "0.5", "--envs", "2"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("the shipped default") && !stderr.contains("panicked"), "{stderr}");
+    const SIGPIPE: i32 = 13;
+    assert_eq!(std::os::unix::process::ExitStatusExt::signal(&out.status), Some(SIGPIPE), "{stderr}");
+    // The outcome of the task, after a run and from a saved rollout.
+    let run = ok(&dir, &["run", "--task", "joystick", "--seconds", "0.5", "-o", "j.rollout.safetensors"]);
+    let outcome = ok(&dir, &["eval", "outcome", "j.rollout.safetensors"]);
+    assert!(run.contains("followed") && run.contains("+1.0, +0.0, +0.0"), "{run}");
+    assert!(run.contains("the schedule is 12 s long") && outcome.contains("followed"), "{run}\n{outcome}");
+    // A port in use is said once.
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = taken.local_addr().unwrap().port().to_string();
+    let text = refused(&["play", "--port", &port], &["cannot listen"]);
+    assert_eq!(text.matches("in use").count(), 1, "{text}");
     std::fs::remove_dir_all(&dir).ok();
 }
 

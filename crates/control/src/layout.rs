@@ -1,5 +1,5 @@
 //! Where things are in a predicted trajectory `tau_t = [a_t, s_{t+1}, a_{t+1}, ..., s_{t+H}, a_{t+H}]`
-//! (DESIGN.md 2), stored flat in that order: action 0, then (state k, action k) for k = 1..=H.
+//! (docs/conventions.md, section 2), stored flat in that order: action 0, then (state k, action k) for k = 1..=H.
 //! States are in the character frame of step t (global part) and their own frame (local part),
 //! in physical units (the model's normalisation undone).
 

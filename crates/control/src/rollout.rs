@@ -4,7 +4,7 @@
 //! | tensor    | shape            | meaning                                                     |
 //! |-----------|------------------|-------------------------------------------------------------|
 //! | `qpos`    | E x (T+1) x 76   | MuJoCo positions (root xyz, quaternion wxyz, 69 hinges)     |
-//! | `state`   | E x (T+1) x 165  | the model's state features (DESIGN.md 2)                    |
+//! | `state`   | E x (T+1) x 165  | the model's state features (docs/conventions.md, 2)         |
 //! | `body_pos`| E x (T+1) x 24 x 3 | world positions of the 24 bodies (pelvis first)           |
 //! | `action`  | E x T x 69       | executed normalised actions                                 |
 //! | `command` | E x T x 8        | joystick (vx, vy, yaw rate), hand target xyz, waypoint xy   |

@@ -1,5 +1,5 @@
 //! Training windows: history `O_t = [s_{t-N}, a_{t-N}, ..., s_t]` and future
-//! `tau_t = [a_t, s_{t+1}, a_{t+1}, ..., s_{t+H}, a_{t+H}]` (DESIGN.md 2), with every state's
+//! `tau_t = [a_t, s_{t+1}, a_{t+1}, ..., s_{t+H}, a_{t+H}]` (docs/conventions.md, section 2), with every state's
 //! global part (root position, velocity, rotation) re-expressed in the character frame of
 //! step t, its local part as stored. Windows never cross an episode boundary.
 

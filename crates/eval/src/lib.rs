@@ -4,6 +4,7 @@
 //! the report, and the paper's [`experiments`] built from them.
 
 pub mod experiments;
+pub mod outcome;
 pub mod protocols;
 pub mod sweep;
 

@@ -230,15 +230,21 @@ pub fn reach(
         })
         .collect();
     let r = bench.run(tasks, point, 4.0, false, on_step)?;
-    Ok((0..trials)
-        .map(|e| {
-            let target = r.info.tasks[e].reach.expect("reach task").1;
-            let hands: Vec<[f64; 3]> = (1..=r.survived[e]).map(|k| r.body(e, k, body::R_HAND)).collect();
-            let (mean, rms) = reach_errors(&hands, &vec![target; hands.len()]);
-            let min = hands.iter().map(|h| distance(h, &target)).fold(f64::INFINITY, f64::min);
-            ReachTrial { mean, rms, min, fell: r.fell(e) }
-        })
-        .collect())
+    Ok((0..trials).map(|e| reach_trial(&r, e).expect("reach task")).collect())
+}
+
+/// The hand-to-target distances of one environment of a rollout whose task reaches (`None`
+/// for a task without a hand target).
+pub fn reach_trial(r: &Rollout, e: usize) -> Option<ReachTrial> {
+    let (hand, target) = r.info.tasks[e].reach?;
+    let b = match hand {
+        Hand::Left => body::L_HAND,
+        Hand::Right => body::R_HAND,
+    };
+    let hands: Vec<[f64; 3]> = (1..=r.survived[e]).map(|k| r.body(e, k, b)).collect();
+    let (mean, rms) = reach_errors(&hands, &vec![target; hands.len()]);
+    let min = hands.iter().map(|h| distance(h, &target)).fold(f64::INFINITY, f64::min);
+    Some(ReachTrial { mean, rms, min, fell: r.fell(e) })
 }
 
 fn distance(a: &[f64], b: &[f64]) -> f64 {
@@ -273,15 +279,17 @@ pub fn waypoint(
         })
         .collect();
     let r = bench.run(tasks, point, 10.0, false, on_step)?;
-    Ok((0..trials)
-        .map(|e| {
-            let distances = r.pelvis_distances(e, r.info.tasks[e].waypoint.expect("waypoint"));
-            let closest = distances.iter().copied().fold(f64::INFINITY, f64::min);
-            let arrival = distances.iter().position(|&d| d <= 0.5).map(|k| (k + 1) as f64 / CONTROL_HZ);
-            let last = distances.last().copied().unwrap_or(f64::NAN);
-            WaypointTrial { closest, arrival, last, fell: r.fell(e) }
-        })
-        .collect())
+    Ok((0..trials).map(|e| waypoint_trial(&r, e).expect("waypoint task")).collect())
+}
+
+/// The pelvis's way to the goal in one environment of a rollout whose task has a waypoint
+/// (`None` for a task without one).
+pub fn waypoint_trial(r: &Rollout, e: usize) -> Option<WaypointTrial> {
+    let distances = r.pelvis_distances(e, r.info.tasks[e].waypoint?);
+    let closest = distances.iter().copied().fold(f64::INFINITY, f64::min);
+    let arrival = distances.iter().position(|&d| d <= 0.5).map(|k| (k + 1) as f64 / CONTROL_HZ);
+    let last = distances.last().copied().unwrap_or(f64::NAN);
+    Some(WaypointTrial { closest, arrival, last, fell: r.fell(e) })
 }
 
 /// One composition trial: closest approach to the waypoint and the hand target, and success.

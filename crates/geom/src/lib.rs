@@ -1,6 +1,6 @@
 //! Rotations and character frames: the one place where flowmimic does 3-D math.
 //!
-//! Conventions (DESIGN.md section 2): z up, right-handed, metres and radians, quaternions
+//! Conventions (docs/conventions.md, section 1): z up, right-handed, metres and radians, quaternions
 //! stored as `(w, x, y, z)` like MuJoCo. Internally we use `glam`'s `DQuat`/`DVec3`; the
 //! `*_wxyz` helpers convert at the boundary to MuJoCo arrays.
 //!

@@ -90,9 +90,65 @@ pub fn read_to_string(path: &Path) -> Result<String, FileError> {
     fs::read_to_string(path).map_err(at(path))
 }
 
+/// What a file looks like from its first bytes, for errors that say which kind of file a
+/// command got and, for the kinds this project reads, which command takes it: "a PNG image",
+/// "a BVH motion capture (`flowmimic motion import` reads it)", ...
+pub fn describe(path: &Path) -> String {
+    if path.is_dir() {
+        return "a directory".into();
+    }
+    let mut head = [0u8; 512];
+    let n = match fs::File::open(path).and_then(|mut f| io::Read::read(&mut f, &mut head)) {
+        Ok(n) => n,
+        Err(e) => return format!("unreadable ({e})"),
+    };
+    let head = &head[..n];
+    let text = std::str::from_utf8(head).map(str::trim_start);
+    let kind = if head.starts_with(b"\x89PNG") {
+        "a PNG image"
+    } else if head.starts_with(b"GIF8") {
+        "a GIF image"
+    } else if head.starts_with(&[0xff, 0xd8]) {
+        "a JPEG image"
+    } else if head.len() > 8 && head[8] == b'{' {
+        "a safetensors file"
+    } else if text.is_ok_and(|t| t.starts_with("HIERARCHY")) {
+        "a BVH motion capture (`flowmimic motion import` reads it)"
+    } else if text.is_ok_and(|t| t.starts_with('{') && t.contains("\"Frames\"")) {
+        "a DeepMimic motion (`flowmimic motion import` reads it)"
+    } else if text.is_ok_and(|t| t.starts_with('{') || t.starts_with('[')) {
+        "a JSON file"
+    } else if n == 0 {
+        "empty"
+    } else if text.is_ok() || std::str::from_utf8(&head[..n.saturating_sub(3)]).is_ok() {
+        "a text file"
+    } else {
+        "a binary file"
+    };
+    kind.into()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn files_are_described_by_their_first_bytes() {
+        let dir = std::env::temp_dir().join(format!("flowmimic-io-describe-{}", std::process::id()));
+        fs::create_dir_all(&dir).unwrap();
+        let file = |name: &str, bytes: &[u8]| {
+            let p = dir.join(name);
+            fs::write(&p, bytes).unwrap();
+            describe(&p)
+        };
+        assert_eq!(file("a.png", b"\x89PNG\r\n\x1a\n...."), "a PNG image");
+        assert!(file("a.bvh", b"HIERARCHY\nROOT Hips\n").starts_with("a BVH motion capture"));
+        assert!(file("a.txt", b"{\"Loop\": \"wrap\", \"Frames\": [[0.03]]}").starts_with("a DeepMimic motion"));
+        assert_eq!(file("a.st", b"\x10\0\0\0\0\0\0\0{\"a\":1}"), "a safetensors file");
+        assert_eq!(file("a.bin", &[0, 159, 146, 150, 1, 2, 3, 4, 0, 7]), "a binary file");
+        assert_eq!(describe(&dir), "a directory");
+        fs::remove_dir_all(&dir).unwrap();
+    }
 
     #[test]
     fn atomic_write_replaces_content_and_leaves_no_temporaries() {
@@ -236,7 +292,7 @@ pub mod tensors {
             let bytes = super::read(path)?;
             let bad = |e: safetensors::SafeTensorError| TensorError {
                 path: path.into(),
-                message: format!("not a readable safetensors file ({e})"),
+                message: format!("not a readable safetensors file ({e}): it is {}", super::describe(path)),
             };
             let (_, header) = SafeTensors::read_metadata(&bytes).map_err(bad)?;
             let meta = header.metadata().clone().unwrap_or_default();

@@ -302,7 +302,12 @@ impl Clip {
     pub fn load(humanoid: &Arc<Humanoid>, path: &Path) -> Result<Self, MotionError> {
         let bytes = flowmimic_io::read(path)?;
         let bad = |m: String| MotionError::file(path, m);
-        let (_, meta) = SafeTensors::read_metadata(&bytes).map_err(|e| bad(format!("not a safetensors file: {e}")))?;
+        let (_, meta) = SafeTensors::read_metadata(&bytes).map_err(|e| {
+            bad(format!(
+                "not a clip (.clip.safetensors, written by `flowmimic motion import|generate|corpus`; {e}): it is {}",
+                flowmimic_io::describe(path)
+            ))
+        })?;
         let meta = meta.metadata().clone().unwrap_or_default();
         let get = |k: &str| meta.get(k).cloned().ok_or_else(|| bad(format!("metadata has no '{k}'")));
         if get("format")? != FORMAT {

@@ -29,8 +29,9 @@ use std::sync::Arc;
 
 #[derive(Debug, thiserror::Error)]
 pub enum MotionError {
-    #[error("{path}: {source}")]
-    Bvh { path: PathBuf, source: bvh::BvhError },
+    // Not `source`: the message already carries the BVH error (a chain would print it twice).
+    #[error("{path}: {error}")]
+    Bvh { path: PathBuf, error: bvh::BvhError },
     #[error("{path}: {message}")]
     File { path: PathBuf, message: String },
     #[error(transparent)]
@@ -83,7 +84,9 @@ fn is_t_pose(p: &landmarks::Pose) -> bool {
 
 /// Imports a BVH (`.bvh`) or DeepMimic (`.txt`/`.json`) file and retargets it.
 pub fn import(humanoid: &Arc<Humanoid>, path: &Path, options: &ImportOptions) -> Result<Imported, MotionError> {
-    let text = flowmimic_io::read_to_string(path)?;
+    let text = String::from_utf8(flowmimic_io::read(path)?).map_err(|_| {
+        MotionError::file(path, format!("not a BVH or DeepMimic motion: it is {}", flowmimic_io::describe(path)))
+    })?;
     let name = options
         .name
         .clone()
@@ -91,7 +94,7 @@ pub fn import(humanoid: &Arc<Humanoid>, path: &Path, options: &ImportOptions) ->
     let is_bvh = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("bvh"));
     let mut joint_map = Vec::new();
     let (mut source, family, units, up, mut cyclic): (LandmarkClip, String, Option<Units>, UpAxis, bool) = if is_bvh {
-        let bvh = bvh::Bvh::parse(&text).map_err(|source| MotionError::Bvh { path: path.into(), source })?;
+        let bvh = bvh::Bvh::parse(&text).map_err(|error| MotionError::Bvh { path: path.into(), error })?;
         let reading = landmarks::from_bvh(&bvh, options.units, options.up, options.map.as_ref())
             .map_err(|e| MotionError::file(path, e.to_string()))?;
         joint_map = reading.map.describe(&bvh);

@@ -22,12 +22,26 @@ use std::time::Duration;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ServeError {
-    #[error("cannot listen on 127.0.0.1:{port}: {source}")]
-    Bind { port: u16, source: std::io::Error },
+    #[error("cannot listen on 127.0.0.1:{port}: {error}")]
+    Bind { port: u16, error: std::io::Error },
     #[error("server: {0}")]
-    Io(#[from] std::io::Error),
+    Io(std::io::Error),
     #[error("cannot start live play: {0}")]
-    Control(#[from] flowmimic_control::ControlError),
+    Control(flowmimic_control::ControlError),
+}
+
+// By hand rather than `#[from]`, which would make the cause the error's `source()` as well as
+// part of its message, and error chains print it twice.
+impl From<std::io::Error> for ServeError {
+    fn from(e: std::io::Error) -> Self {
+        Self::Io(e)
+    }
+}
+
+impl From<flowmimic_control::ControlError> for ServeError {
+    fn from(e: flowmimic_control::ControlError) -> Self {
+        Self::Control(e)
+    }
 }
 
 /// Largest request body, bytes (every route is a GET: anything bigger is not ours).
@@ -42,7 +56,7 @@ pub fn serve(router: Router, port: u16, on_ready: impl FnOnce(&str)) -> Result<(
     runtime.block_on(async {
         let listener = tokio::net::TcpListener::bind(("127.0.0.1", port))
             .await
-            .map_err(|source| ServeError::Bind { port, source })?;
+            .map_err(|error| ServeError::Bind { port, error })?;
         on_ready(&format!("http://{}/", listener.local_addr()?));
         axum::serve(listener, guarded(router)).await?;
         Ok(())

@@ -7,15 +7,15 @@ use mujoco_rs::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
-/// Control rate of every stage, Hz (DESIGN.md 2).
+/// Control rate of every stage, Hz (docs/conventions.md, section 2).
 pub const CONTROL_HZ: f64 = 30.0;
 
 /// Physics settings. The control rate is fixed at 30 Hz; physics runs `substeps` times faster.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SimConfig {
-    /// Physics steps per 30 Hz control step: 4 gives 120 Hz physics (the default, DESIGN.md
-    /// minimum), 8 gives 240 Hz at half the speed.
+    /// Physics steps per 30 Hz control step: 4 gives 120 Hz physics (the default and the least
+    /// the conventions allow, docs/conventions.md, section 2), 8 gives 240 Hz at half the speed.
     pub substeps: usize,
 }
 

@@ -115,7 +115,7 @@ pub fn humanoid_xml(options: &MjcfOptions) -> String {
         writeln!(xml, "  </contact>").unwrap();
     }
     // Position actuators with kv: MuJoCo applies kp and kd, and implicitfast integrates the
-    // damping implicitly, which keeps light bodies (hands, toes) stable (DESIGN.md 3).
+    // damping implicitly, which keeps light bodies (hands, toes) stable (docs/conventions.md, section 3).
     writeln!(xml, "  <actuator>").unwrap();
     for spec in &specs[1..] {
         let (kp, kd) = pd_gains(spec.group);

@@ -115,7 +115,7 @@ pub enum JointGroup {
 
 impl JointGroup {
     /// Reflected inertia `I_j` (kg m^2), also the joint armature. Chosen so that
-    /// `kp = I wn^2` lands near the gains known to work for SMPL humanoids (DESIGN.md 3).
+    /// `kp = I wn^2` lands near the gains known to work for SMPL humanoids (docs/conventions.md, section 3).
     pub fn armature(self) -> f64 {
         match self {
             JointGroup::Leg => 0.2,

@@ -1,4 +1,4 @@
-//! The 165-d character-frame state (DESIGN.md 2; paper section IV-A).
+//! The 165-d character-frame state (docs/conventions.md, section 2; paper section IV-A).
 //!
 //! | range     | what                                                                        |
 //! |-----------|-----------------------------------------------------------------------------|

@@ -1,0 +1,34 @@
+//! Where the shipped files are, and which model a command drives when none is named.
+
+use std::path::{Path, PathBuf};
+
+/// The shipped default guidance model, relative to the checkout.
+pub const SHIPPED_MODEL: &str = "pretrained/models/fm";
+/// The Flow Matching model `make run` (`flowmimic pipeline`) trains.
+pub const PIPELINE_MODEL: &str = "runs/pipeline/model/fm";
+
+/// A shipped file or directory (`pretrained/...`): from the current directory when it is the
+/// checkout, else from the checkout that holds this binary (`target/release/flowmimic`), else
+/// from the one it was built in; the relative path itself when none has it.
+pub fn shipped(relative: &str) -> PathBuf {
+    let exe = std::env::current_exe().ok();
+    let roots = std::iter::once(PathBuf::from("."))
+        .chain(exe.iter().flat_map(|e| e.ancestors().skip(1).map(Path::to_path_buf)))
+        .chain(std::iter::once(PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../.."))));
+    roots.map(|root| root.join(relative)).find(|p| p.exists()).unwrap_or_else(|| PathBuf::from(relative))
+}
+
+/// The model a command drives: `--model`, else the one `make run` trained when it exists in
+/// the current directory, else the shipped default; says which when none was named.
+pub fn model_or_default(model: Option<PathBuf>) -> PathBuf {
+    if let Some(m) = model {
+        return m;
+    }
+    if Path::new(PIPELINE_MODEL).join("model.safetensors").exists() {
+        eprintln!("model: {PIPELINE_MODEL}, the one `make run` trained (--model {SHIPPED_MODEL} for the shipped one)");
+        return PathBuf::from(PIPELINE_MODEL);
+    }
+    let shipped = shipped(SHIPPED_MODEL);
+    eprintln!("model: {}, the shipped default (--model DIR for another)", shipped.display());
+    shipped
+}

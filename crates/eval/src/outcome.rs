@@ -1,0 +1,70 @@
+//! What a rollout achieved for its task, environment by environment: each joystick segment's
+//! achieved speeds against the asked ones (and in how many environments it was followed), the
+//! hand's closest approach to its target, the pelvis's way to its goal. `flowmimic run` prints
+//! it after a run and `flowmimic eval outcome` for a saved rollout, so that one failing segment
+//! or environment cannot hide behind an average.
+
+use crate::protocols::{JoystickTrial, ReachTrial, WaypointTrial, joystick_trial, reach_trial, waypoint_trial};
+use flowmimic_control::Rollout;
+
+/// How close a followed segment comes to its command over its settled part: forward and
+/// sideways speed within 0.25 m/s, yaw rate within 0.25 rad/s.
+pub const FOLLOWED_SPEED: f64 = 0.25;
+pub const FOLLOWED_YAW_RATE: f64 = 0.25;
+
+/// One joystick segment over the environments that were asked it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Segment {
+    /// Asked forward and sideways speed (m/s) and yaw rate (rad/s).
+    pub asked: [f64; 3],
+    /// Achieved, per environment, over the segment after [`crate::protocols::SEGMENT_SETTLE`].
+    pub achieved: Vec<[f64; 3]>,
+    /// Environments within [`FOLLOWED_SPEED`] and [`FOLLOWED_YAW_RATE`] of the command that did
+    /// not fall.
+    pub followed: usize,
+}
+
+/// A rollout's outcome.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Outcome {
+    pub envs: usize,
+    pub fell: usize,
+    /// The first environment's joystick schedule, segment by segment, over every environment
+    /// given the same schedule (empty when there is none).
+    pub segments: Vec<Segment>,
+    /// Per environment with a hand target, and with a waypoint.
+    pub reach: Vec<ReachTrial>,
+    pub waypoint: Vec<WaypointTrial>,
+}
+
+/// Whether an achieved segment follows its command.
+pub fn followed(asked: [f64; 3], achieved: [f64; 3]) -> bool {
+    (achieved[0] - asked[0]).abs() <= FOLLOWED_SPEED
+        && (achieved[1] - asked[1]).abs() <= FOLLOWED_SPEED
+        && (achieved[2] - asked[2]).abs() <= FOLLOWED_YAW_RATE
+}
+
+impl Outcome {
+    pub fn of(r: &Rollout) -> Self {
+        let schedule = &r.info.tasks[0].joystick;
+        let same: Vec<usize> = (0..r.envs).filter(|&e| &r.info.tasks[e].joystick == schedule).collect();
+        let trials: Vec<JoystickTrial> = same.iter().map(|&e| joystick_trial(r, e)).collect();
+        let segments = schedule
+            .iter()
+            .enumerate()
+            .map(|(i, s)| {
+                let asked = [s.vx, s.vy, s.yaw_rate];
+                let achieved: Vec<[f64; 3]> = trials.iter().map(|t| t.segments[i]).collect();
+                let followed = trials.iter().filter(|t| !t.fell && followed(asked, t.segments[i])).count();
+                Segment { asked, achieved, followed }
+            })
+            .collect();
+        Self {
+            envs: r.envs,
+            fell: (0..r.envs).filter(|&e| r.fell(e)).count(),
+            segments,
+            reach: (0..r.envs).filter_map(|e| reach_trial(r, e)).collect(),
+            waypoint: (0..r.envs).filter_map(|e| waypoint_trial(r, e)).collect(),
+        }
+    }
+}
