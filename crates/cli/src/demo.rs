@@ -2,9 +2,10 @@
 //! left, turn right, backward), then reaches with its right hand while walking; rollouts, plots
 //! and metrics in one command.
 
-use crate::run::{load_model, start_clip};
+use crate::run::{DriveArgs, load_model, recommended, start_clip};
 use anyhow::Result;
-use flowmimic_control::{ControlConfig, Hand, HeadingHold, JoystickSegment, Rollout, Task};
+use flowmimic_control::recommended::Settings;
+use flowmimic_control::{Hand, HeadingHold, JoystickSegment, Rollout, Task};
 use flowmimic_eval::protocols::{SEGMENT_SETTLE, joystick_trial, yaw_rates};
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::skeleton::body;
@@ -13,10 +14,18 @@ use flowmimic_sim::{CONTROL_HZ, Humanoid};
 use std::path::Path;
 use std::sync::Arc;
 
-/// Guidance scales of the demo: the joystick's and the reach's (see the README's Results for
-/// the sweeps they come from).
-const JOYSTICK_SCALE: f32 = 40.0;
-const REACH_SCALE: f32 = 30.0;
+/// The joystick part's settings where no flag is given: a fixed scale with inverse dynamics,
+/// under which `fm` walks backward at the asked -0.5 m/s once the command is held (5 s here).
+/// The model's recommended joystick settings (adaptive guidance at w 50) fall less over the
+/// protocol's 3 s segments but barely reverse: -0.18 m/s after 5 s in this demo.
+const DEMO_JOYSTICK: Settings = Settings {
+    nfe: Some(2),
+    guidance_scale: Some(40.0),
+    adaptive: Some(0.0),
+    inverse_dynamics: Some(0.2),
+    guidance_interval: None,
+    approach: None,
+};
 
 /// Forward, turn left, turn right, then backward, the walk the joystick protocol asks in
 /// another order, with longer turns and backward walk: walking forward again after walking
@@ -31,23 +40,19 @@ fn schedule() -> Task {
     }
 }
 
-pub fn run(model_dir: &Path, out: &Path, nfe: usize, inverse_dynamics: f32, humanoid: &Arc<Humanoid>) -> Result<()> {
+pub fn run(model_dir: &Path, out: &Path, drive: &DriveArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     let model = load_model(model_dir)?;
     let clip = start_clip(humanoid, None)?;
-    let control =
-        |seconds: f64, scale: f32| ControlConfig { inverse_dynamics, ..ControlConfig::new(nfe, scale, seconds) };
     let name = model_dir.display().to_string();
-    eprintln!(
-        "{} model from {name} (H {}), NFE {nfe}, inverse dynamics {inverse_dynamics}",
-        model.objective.label(),
-        model.layout().spec.horizon
-    );
+    eprintln!("{} model from {name} (H {})", model.objective.label(), model.layout().spec.horizon);
+    let joystick = drive.choose_over(&DEMO_JOYSTICK, "demo", "joystick")?;
+    let reach = drive.choose(&recommended(model_dir, "reach")?, "reach")?;
 
     // 1. Joystick: forward, turn left, turn right, backward.
     let task = schedule();
     let seconds = task.joystick.iter().map(|s| s.seconds).sum();
-    let r =
-        flowmimic_control::run(&model, humanoid, &clip, vec![task], &control(seconds, JOYSTICK_SCALE), &name, |_| {})?;
+    let control = joystick.control(drive.guidance.gradient, seconds);
+    let r = flowmimic_control::run(&model, humanoid, &clip, vec![task], &control, &name, |_| {})?;
     r.save(&out.join("joystick.rollout.safetensors"))?;
     let t = joystick_trial(&r, 0);
     let time = |k: usize| k as f64 / CONTROL_HZ;
@@ -89,7 +94,8 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, inverse_dynamics: f32, huma
         .series(Series::line("achieved", achieved))
         .save(&out.join("joystick_heading"))?;
     println!(
-        "joystick (forward, turn left, turn right, backward; w {JOYSTICK_SCALE}): velocity RMSE {:.2} m/s, yaw-rate RMSE {:.2} rad/s, {}",
+        "joystick (forward, turn left, turn right, backward; w {}): velocity RMSE {:.2} m/s, yaw-rate RMSE {:.2} rad/s, {}",
+        joystick.guidance_scale,
         t.velocity_rmse,
         t.yaw_rate_rmse,
         fell(&r)
@@ -106,7 +112,8 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, inverse_dynamics: f32, huma
     let start = &clip.qpos[flowmimic_control::controller::start_frame(clip.len(), model.layout().spec.history, 0)];
     let target = [start[0] + 2.0, start[1] - 0.3, 0.85];
     let task = Task { reach: Some((Hand::Right, target)), approach: true, ..Task::walk() };
-    let r = flowmimic_control::run(&model, humanoid, &clip, vec![task], &control(5.0, REACH_SCALE), &name, |_| {})?;
+    let control = reach.control(drive.guidance.gradient, 5.0);
+    let r = flowmimic_control::run(&model, humanoid, &clip, vec![task], &control, &name, |_| {})?;
     r.save(&out.join("reach.rollout.safetensors"))?;
     let distance = |k: usize| {
         let h = r.body(0, k, body::R_HAND);
@@ -118,7 +125,8 @@ pub fn run(model_dir: &Path, out: &Path, nfe: usize, inverse_dynamics: f32, huma
         .series(Series::line("distance", d))
         .save(&out.join("reach_distance"))?;
     println!(
-        "walking up to a hand target (w {REACH_SCALE}): closest hand-target distance {closest:.2} m, {}",
+        "walking up to a hand target (w {}): closest hand-target distance {closest:.2} m, {}",
+        reach.guidance_scale,
         fell(&r)
     );
     let (model_ms, physics_ms) = r.median_ms();

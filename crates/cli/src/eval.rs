@@ -2,7 +2,7 @@
 //! points), run by `flowmimic_eval::experiments` with a progress bar.
 
 use crate::progress::Progress;
-use crate::run::{GuidanceArgs, start_clip};
+use crate::run::{DriveArgs, GuidanceArgs, recommended, start_clip};
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use flowmimic_control::StepReport;
@@ -65,55 +65,65 @@ pub enum EvalCommand {
     Joystick {
         #[command(flatten)]
         common: Common,
-        #[arg(long, value_delimiter = ',', default_value = "0,3,10,30")]
+        /// Guidance scales (default: 0 and the first model's recommended w).
+        #[arg(long, value_delimiter = ',')]
         scales: Vec<f32>,
-        #[arg(long, default_value_t = 5)]
-        nfe: usize,
+        /// Network evaluations per step (default: the first model's recommended, else 5).
+        #[arg(long)]
+        nfe: Option<usize>,
     },
     /// Random right-hand targets while walking (paper Fig. 4): hand-target distance and the
     /// share of trials whose hand comes within 0.15 m, against guidance scale for each model.
     Reach {
         #[command(flatten)]
         common: Common,
-        #[arg(long, value_delimiter = ',', default_value = "0,3,10,30")]
+        /// Guidance scales (default: 0 and the first model's recommended w).
+        #[arg(long, value_delimiter = ',')]
         scales: Vec<f32>,
-        #[arg(long, default_value_t = 5)]
-        nfe: usize,
+        /// Network evaluations per step (default: the first model's recommended, else 5).
+        #[arg(long)]
+        nfe: Option<usize>,
         /// Target heights `LOW,HIGH` (m), drawn uniformly. The walking hand swings 0.74-0.85 m
         /// high; the default reaches above it, where walking-only data has no hand.
         #[arg(long, value_delimiter = ',', default_values_t = REACH_HEIGHTS)]
         heights: Vec<f64>,
         /// Walk up to each target (a pursuit command toward a point beside it that brings the
-        /// hand there) instead of walking on with the hand's cost alone.
-        #[arg(long)]
-        approach: bool,
+        /// hand there) instead of walking on with the hand's cost alone (true without a value;
+        /// default: the first model's recommended, else false).
+        #[arg(long, num_args = 0..=1, default_missing_value = "true")]
+        approach: Option<bool>,
     },
     /// Walk to a goal 3-4 m away at a bearing within 90 degrees: arrival rate (pelvis within
     /// 0.5 m), closest approach, time to arrive and distance at the end, against guidance scale.
     Waypoint {
         #[command(flatten)]
         common: Common,
-        #[arg(long, value_delimiter = ',', default_value = "0,10,30")]
+        /// Guidance scales (default: 0 and the first model's recommended w).
+        #[arg(long, value_delimiter = ',')]
         scales: Vec<f32>,
-        #[arg(long, default_value_t = 5)]
-        nfe: usize,
+        /// Network evaluations per step (default: the first model's recommended, else 5).
+        #[arg(long)]
+        nfe: Option<usize>,
     },
     /// Walk to a waypoint and touch a target there: success rate (pelvis within 0.5 m and hand
     /// within 0.15 m at once).
     Compose {
         #[command(flatten)]
         common: Common,
-        #[arg(long, value_delimiter = ',', default_value = "10")]
+        /// Guidance scales (default: the first model's recommended w).
+        #[arg(long, value_delimiter = ',')]
         scales: Vec<f32>,
-        #[arg(long, default_value_t = 5)]
-        nfe: usize,
+        /// Network evaluations per step (default: the first model's recommended, else 5).
+        #[arg(long)]
+        nfe: Option<usize>,
         /// Height of the hand target (m).
         #[arg(long, default_value_t = 1.2)]
         height: f64,
         /// Walk toward a point that brings the hand to the target, within 0.4 m of the waypoint,
-        /// instead of to the waypoint itself.
-        #[arg(long)]
-        approach: bool,
+        /// instead of to the waypoint itself (true without a value; default: the first model's
+        /// recommended, else false).
+        #[arg(long, num_args = 0..=1, default_missing_value = "true")]
+        approach: Option<bool>,
     },
     /// Fréchet distance between motion features of unguided generated walking and the
     /// dataset's expert rollouts (root height and velocity, head, hands and feet).
@@ -134,8 +144,9 @@ pub enum EvalCommand {
         common: Common,
         #[arg(long, value_delimiter = ',', default_value = "1,3,10,30")]
         scales: Vec<f32>,
-        #[arg(long, default_value_t = 5)]
-        nfe: usize,
+        /// Network evaluations per step (default: the first model's recommended, else 5).
+        #[arg(long)]
+        nfe: Option<usize>,
         /// Conditionings (start frames of the clip).
         #[arg(long, default_value_t = 32)]
         samples: usize,
@@ -227,6 +238,22 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     };
     let models = load_models(&common.models)?;
     let clip = start_clip(humanoid, common.clip.as_deref())?;
+    // Settings left out come from the first model's recommended ones for the protocol's task.
+    let (task, nfe, approach) = match &cmd {
+        EvalCommand::Joystick { nfe, .. } | EvalCommand::Guidance { nfe, .. } => ("joystick", *nfe, None),
+        EvalCommand::Reach { nfe, approach, .. } => ("reach", *nfe, *approach),
+        EvalCommand::Waypoint { nfe, .. } => ("waypoint", *nfe, None),
+        EvalCommand::Compose { nfe, approach, .. } => ("compose", *nfe, *approach),
+        EvalCommand::Latency { guided: Some(_), .. } => ("joystick", None, None),
+        _ => ("walk", None, None),
+    };
+    let drive = DriveArgs { nfe, guidance_scale: None, approach, guidance: common.guidance };
+    let chosen = drive.choose(&recommended(&models[0].dir, task)?, task)?;
+    let scales = |given: &[f32], unguided: bool| match (given.is_empty(), unguided) {
+        (false, _) => given.to_vec(),
+        (true, true) => vec![0.0, chosen.guidance_scale],
+        (true, false) => vec![chosen.guidance_scale],
+    };
     let study = Study {
         models: &models,
         humanoid,
@@ -237,26 +264,27 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         seed: common.seed,
         execute: common.execute,
         gradient: common.guidance.gradient,
-        guidance_steps: common.guidance.guidance_interval,
-        adaptive: common.guidance.adaptive,
-        inverse_dynamics: common.guidance.inverse_dynamics,
+        guidance_steps: chosen.guidance_interval,
+        adaptive: chosen.adaptive,
+        inverse_dynamics: chosen.inverse_dynamics,
         progress: &with_progress,
+    };
+    let reach_setup = |heights: &[f64]| -> Result<ReachSetup> {
+        Ok(ReachSetup { heights: reach_heights(heights)?, approach: chosen.approach })
     };
     lib(match &cmd {
         EvalCommand::Survival { nfe, seconds, .. } => study.survival(nfe, *seconds),
-        EvalCommand::Joystick { scales, nfe, .. } => study.joystick(scales, *nfe),
-        EvalCommand::Reach { scales, nfe, heights, approach, .. } => {
-            study.reach(scales, *nfe, ReachSetup { heights: reach_heights(heights)?, approach: *approach })
+        EvalCommand::Joystick { scales: s, .. } => study.joystick(&scales(s, true), chosen.nfe),
+        EvalCommand::Reach { scales: s, heights, .. } => {
+            study.reach(&scales(s, true), chosen.nfe, reach_setup(heights)?)
         }
-        EvalCommand::Waypoint { scales, nfe, .. } => study.waypoint(scales, *nfe),
-        EvalCommand::Compose { scales, nfe, height, approach, .. } => study.compose(
-            scales,
-            *nfe,
-            ReachSetup { heights: reach_heights(&[*height, *height])?, approach: *approach },
-        ),
+        EvalCommand::Waypoint { scales: s, .. } => study.waypoint(&scales(s, true), chosen.nfe),
+        EvalCommand::Compose { scales: s, height, .. } => {
+            study.compose(&scales(s, false), chosen.nfe, reach_setup(&[*height, *height])?)
+        }
         EvalCommand::Quality { dataset, nfe, .. } => study.quality(dataset, nfe),
         EvalCommand::Latency { nfe, guided, .. } => study.latency(nfe, *guided),
-        EvalCommand::Guidance { scales, nfe, samples, .. } => study.guidance(scales, *nfe, *samples),
+        EvalCommand::Guidance { scales, samples, .. } => study.guidance(scales, chosen.nfe, *samples),
         EvalCommand::Outcome { .. } => unreachable!("printed above, without models"),
     })
 }

@@ -62,13 +62,9 @@ enum Command {
         model: Option<PathBuf>,
         #[arg(short, long, default_value = "runs/demo")]
         out: PathBuf,
-        /// Network evaluations per control step (the guidance model steers best at 2).
-        #[arg(long, default_value_t = 2)]
-        nfe: usize,
-        /// Share of each executed action read by the model's inverse dynamics out of the plan's
-        /// next state (see `run --inverse-dynamics`); 0 for a model without `inverse.safetensors`.
-        #[arg(long, value_name = "BETA", default_value_t = 0.2)]
-        inverse_dynamics: f32,
+        /// The model's recommended joystick and reach settings where these are left out.
+        #[command(flatten)]
+        drive: run::DriveArgs,
     },
     /// The whole job on the preset: clips -> PPO experts -> noisy rollouts -> FM and DDPM
     /// models -> quick evaluations and report. Stages already done for the same settings are
@@ -188,14 +184,10 @@ enum Command {
         /// Port on 127.0.0.1 (0: any free one).
         #[arg(long, default_value_t = 8000)]
         port: u16,
-        /// Network evaluations per control step at the start (the page changes it).
-        #[arg(long, default_value_t = 2)]
-        nfe: usize,
-        /// Guidance scale at the start (the page changes it).
-        #[arg(long, default_value_t = 30.0)]
-        guidance_scale: f32,
+        /// The settings at the start (the page changes them); the model's recommended joystick
+        /// settings where these are left out.
         #[command(flatten)]
-        guidance: run::GuidanceArgs,
+        drive: run::DriveArgs,
         /// Start from this clip's frames (default: the generated straight walk).
         #[arg(long)]
         clip: Option<PathBuf>,
@@ -306,17 +298,18 @@ fn run(cli: Cli) -> Result<()> {
             data::run_collect(&Humanoid::new(config.sim)?, runs, &clip, out, config.collect.clone())?
         }
         Command::Dataset(cmd) => data::run_dataset(cmd)?,
-        Command::Demo { model, out, nfe, inverse_dynamics } => {
-            demo::run(&paths::model_or_default(model), &out, nfe, inverse_dynamics, &Humanoid::new(config.sim)?)?
+        Command::Demo { model, out, drive } => {
+            demo::run(&paths::model_or_default(model), &out, &drive, &Humanoid::new(config.sim)?)?
         }
         Command::Pipeline { out, clip } => pipeline::run(&config, &cli.settings.preset, &out, &clip)?,
         Command::Render { file, out, env, width, height, fps } => {
             viz::render(&Humanoid::new(config.sim)?, &file, out, env, (width, height), fps)?
         }
         Command::View { file, env, port } => viz::view(&Humanoid::new(config.sim)?, &file, env, port)?,
-        Command::Play { model, port, nfe, guidance_scale, guidance, clip, record_dir } => {
-            let control = guidance.apply(ControlConfig { paced: true, ..ControlConfig::new(nfe, guidance_scale, 0.0) });
+        Command::Play { model, port, drive, clip, record_dir } => {
             let model = paths::model_or_default(model);
+            let chosen = drive.choose(&run::recommended(&model, "joystick")?, "joystick")?;
+            let control = ControlConfig { paced: true, ..chosen.control(drive.guidance.gradient, 0.0) };
             run::play(&Humanoid::new(config.sim)?, &model, port, control, clip.as_deref(), record_dir)?
         }
         Command::Eval(cmd) => eval::run(cmd, &Humanoid::new(config.sim)?)?,

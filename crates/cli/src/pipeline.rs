@@ -128,14 +128,15 @@ pub fn run(config: &Config, preset: &str, out: &Path, clip_files: &[PathBuf]) ->
         eval::run(EvalCommand::Survival { common: common(), nfe: vec![1, 2, 5, 10, 20], seconds: None }, &humanoid)?;
         eval::run(EvalCommand::Latency { common: common(), nfe: vec![1, 2, 5, 10, 20], guided: None }, &humanoid)?;
         let fm_only = || Common::new(models[..1].to_vec(), eval_dir.clone(), quick);
-        eval::run(EvalCommand::Joystick { common: fm_only(), scales: vec![0.0, 3.0, 10.0, 30.0], nfe: 5 }, &humanoid)?;
+        let scales = vec![0.0, 3.0, 10.0, 30.0];
+        eval::run(EvalCommand::Joystick { common: fm_only(), scales: scales.clone(), nfe: Some(5) }, &humanoid)?;
         eval::run(
             EvalCommand::Reach {
                 common: fm_only(),
-                scales: vec![0.0, 3.0, 10.0, 30.0],
-                nfe: 5,
+                scales,
+                nfe: Some(5),
                 heights: eval::REACH_HEIGHTS.to_vec(),
-                approach: false,
+                approach: Some(false),
             },
             &humanoid,
         )?;

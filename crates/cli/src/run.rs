@@ -2,7 +2,8 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use flowmimic_control::{Adaptive, ControlConfig, Hand, JoystickSegment, Rollout, StepReport, Task};
+use flowmimic_control::recommended::Settings;
+use flowmimic_control::{Adaptive, ControlConfig, Hand, JoystickSegment, Recommended, Rollout, StepReport, Task};
 use flowmimic_eval::HAND_REACHED;
 use flowmimic_eval::outcome::{FOLLOWED_SPEED, FOLLOWED_YAW_RATE, Outcome};
 use flowmimic_eval::protocols::SEGMENT_SETTLE;
@@ -47,21 +48,8 @@ pub struct RunArgs {
     /// Pelvis goal in the world, `x,y` metres.
     #[arg(long, default_value = "4.0,2.0")]
     pub goal: String,
-    /// With --task reach: walk up to the target (a pursuit command toward a point beside it
-    /// that brings the hand there) instead of walking at --schedule's first velocity; with
-    /// --task compose: toward that point within 0.4 m of --goal, instead of to --goal itself.
-    #[arg(long)]
-    pub approach: bool,
-    /// Network evaluations per control step.
-    #[arg(long, default_value_t = 5)]
-    pub nfe: usize,
-    /// Guidance scale w (v' = v - w grad G); each task's gradient is scaled to its error
-    /// (m/s, rad/s, m) in the model's normalised coordinates, so w means the same for every
-    /// task; 0 for none.
-    #[arg(long, default_value_t = 10.0)]
-    pub guidance_scale: f32,
     #[command(flatten)]
-    pub guidance: GuidanceArgs,
+    pub drive: DriveArgs,
     /// Simulated seconds (default: the joystick schedule's length, else 10 s).
     #[arg(long, allow_negative_numbers = true, value_parser = crate::args::seconds)]
     pub seconds: Option<f64>,
@@ -85,7 +73,30 @@ pub struct RunArgs {
     pub out: Option<PathBuf>,
 }
 
-/// How guidance acts, beside its scale: shared by `run`, `eval` and `play`.
+/// How the model is driven by `run`, `play` and `demo`. A setting left out comes from the
+/// model directory's recommended settings for the task ([`flowmimic_control::recommended`]),
+/// else from the built-in default.
+#[derive(Args, Clone, Copy, Default)]
+pub struct DriveArgs {
+    /// Network evaluations per control step (default 5).
+    #[arg(long)]
+    pub nfe: Option<usize>,
+    /// Guidance scale w (v' = v - w grad G); each task's gradient is scaled to its error
+    /// (m/s, rad/s, m) in the model's normalised coordinates, so w means the same for every
+    /// task; 0 for none (default 10).
+    #[arg(long)]
+    pub guidance_scale: Option<f32>,
+    /// With a hand target: walk up to it (a pursuit command toward a point beside it that
+    /// brings the hand there; with a waypoint, toward that point within 0.4 m of it) instead of
+    /// walking on (true without a value; default false).
+    #[arg(long, num_args = 0..=1, default_missing_value = "true")]
+    pub approach: Option<bool>,
+    #[command(flatten)]
+    pub guidance: GuidanceArgs,
+}
+
+/// How guidance acts, beside its scale: shared by `run`, `play`, `demo` and `eval`; like
+/// [`DriveArgs`], a setting left out comes from the model, else the default.
 #[derive(Args, Clone, Copy, Default)]
 pub struct GuidanceArgs {
     /// How guidance takes its gradient: through-network (a vector-Jacobian product through the
@@ -97,28 +108,101 @@ pub struct GuidanceArgs {
     pub guidance_interval: Option<(usize, usize)>,
     /// Adaptive guidance: each environment's scale becomes w times its executed joystick error
     /// over the last half second (m/s and rad/s) divided by this reference error, within w/4
-    /// and w; other tasks keep w (default: the fixed scale w throughout).
+    /// and w; other tasks keep w. 0: the fixed scale w throughout (the default).
     #[arg(long, value_parser = parse_adaptive)]
-    pub adaptive: Option<Adaptive>,
+    pub adaptive: Option<f32>,
     /// Share BETA of the executed action taken from inverse dynamics, 0 to 1: the action that
     /// the model directory's inverse dynamics (`flowmimic inverse`) reads out of the current
     /// state and the plan's next state, blended as a_plan + BETA (a_inverse - a_plan). 0: the
-    /// plan's own action (the paper).
-    #[arg(long, value_name = "BETA", default_value_t = 0.0)]
-    pub inverse_dynamics: f32,
+    /// plan's own action (the paper; the default).
+    #[arg(long, value_name = "BETA")]
+    pub inverse_dynamics: Option<f32>,
 }
 
-impl GuidanceArgs {
-    /// `control` with these settings.
-    pub fn apply(self, control: ControlConfig) -> ControlConfig {
+/// Built-in defaults where neither a flag nor the model says: the paper's NFE 5 and a light w.
+const DEFAULT_NFE: usize = 5;
+const DEFAULT_SCALE: f32 = 10.0;
+
+/// Which settings a command drives a model with, and where each came from.
+#[derive(Clone, Copy, Debug)]
+pub struct Chosen {
+    pub nfe: usize,
+    pub guidance_scale: f32,
+    pub adaptive: Option<Adaptive>,
+    pub inverse_dynamics: f32,
+    pub guidance_interval: Option<(usize, usize)>,
+    pub approach: bool,
+}
+
+impl DriveArgs {
+    /// These flags over `model`'s recommended settings, over the defaults; prints each
+    /// setting with where it came from (flag, model, default).
+    pub fn choose(&self, model: &Settings, task: &str) -> Result<Chosen> {
+        self.choose_over(model, "model", task)
+    }
+
+    /// These flags over `settings` (from `source`), over the defaults.
+    pub fn choose_over(&self, model: &Settings, source: &str, task: &str) -> Result<Chosen> {
+        let g = &self.guidance;
+        let mut said = Vec::new();
+        let mut pick = |name: &str, flag: Option<String>, from_model: Option<String>, default: &str| {
+            let (value, source) = match (flag, from_model) {
+                (Some(v), _) => (v, "flag"),
+                (None, Some(v)) => (v, source),
+                (None, None) => (default.to_string(), "default"),
+            };
+            said.push(format!("{name} {value} ({source})"));
+        };
+        let fmt = |x: Option<f32>| x.map(|x| format!("{x}"));
+        let interval = |i: Option<(usize, usize)>| i.map(|(a, b)| format!("{a}:{b}"));
+        pick("NFE", self.nfe.map(|n| n.to_string()), model.nfe.map(|n| n.to_string()), &DEFAULT_NFE.to_string());
+        pick("w", fmt(self.guidance_scale), fmt(model.guidance_scale), &DEFAULT_SCALE.to_string());
+        pick("adaptive", fmt(g.adaptive), fmt(model.adaptive), "0");
+        pick("inverse dynamics", fmt(g.inverse_dynamics), fmt(model.inverse_dynamics), "0");
+        let model_interval = model.guidance_interval.map(|[a, b]| (a, b));
+        pick("guidance steps", interval(g.guidance_interval), interval(model_interval), "all but the last quarter");
+        pick("approach", self.approach.map(|a| a.to_string()), model.approach.map(|a| a.to_string()), "false");
+        eprintln!("settings for {task}: {}", said.join(", "));
+        let reference = g.adaptive.or(model.adaptive).filter(|&r| r > 0.0);
+        let chosen = Chosen {
+            nfe: self.nfe.or(model.nfe).unwrap_or(DEFAULT_NFE),
+            guidance_scale: self.guidance_scale.or(model.guidance_scale).unwrap_or(DEFAULT_SCALE),
+            adaptive: reference.map(Adaptive::new).transpose()?,
+            inverse_dynamics: g.inverse_dynamics.or(model.inverse_dynamics).unwrap_or(0.0),
+            guidance_interval: g.guidance_interval.or(model_interval),
+            approach: self.approach.or(model.approach).unwrap_or(false),
+        };
+        if !(0.0..=1.0).contains(&chosen.inverse_dynamics) {
+            bail!("--inverse-dynamics {}: give a share from 0 to 1", chosen.inverse_dynamics);
+        }
+        Ok(chosen)
+    }
+}
+
+impl Chosen {
+    /// A control configuration with these settings for `seconds`.
+    pub fn control(&self, gradient: Gradient, seconds: f64) -> ControlConfig {
         ControlConfig {
-            gradient: self.gradient,
+            gradient,
             guidance_steps: self.guidance_interval,
             adaptive: self.adaptive,
             inverse_dynamics: self.inverse_dynamics,
-            ..control
+            ..ControlConfig::new(self.nfe, self.guidance_scale, seconds)
         }
     }
+}
+
+/// A model directory's recommended settings for a task (`walk`, `joystick`, `reach`,
+/// `waypoint`, `compose`).
+pub fn recommended(dir: &Path, task: &str) -> Result<Settings> {
+    let r = Recommended::load(dir)?;
+    Ok(match task {
+        "joystick" => r.joystick,
+        "reach" => r.reach,
+        "waypoint" => r.waypoint,
+        "compose" => r.compose,
+        _ => r.walk,
+    })
 }
 
 /// `start:end` with start < end: the solver steps guidance acts on.
@@ -127,10 +211,13 @@ fn parse_interval(text: &str) -> Result<(usize, usize), String> {
     parsed.filter(|(a, b)| a < b).ok_or_else(|| format!("'{text}': use start:end with start < end"))
 }
 
-/// A reference error for adaptive guidance (> 0).
-fn parse_adaptive(text: &str) -> Result<Adaptive, String> {
+/// A reference error for adaptive guidance (> 0), or 0 for the fixed scale.
+fn parse_adaptive(text: &str) -> Result<f32, String> {
     let value: f32 = text.parse().map_err(|_| format!("'{text}': not a number"))?;
-    Adaptive::new(value).map_err(|e| e.to_string())
+    if value == 0.0 {
+        return Ok(0.0);
+    }
+    Adaptive::new(value).map(|a| a.reference).map_err(|e| e.to_string())
 }
 
 /// `through-network` or `cost-only`.
@@ -172,7 +259,12 @@ pub(crate) fn schedule(text: &str) -> Result<Vec<JoystickSegment>> {
 }
 
 impl RunArgs {
-    pub fn task(&self) -> Result<Task> {
+    /// The task's name, as its recommended settings are filed.
+    pub fn task_name(&self) -> String {
+        format!("{:?}", self.task).to_lowercase()
+    }
+
+    pub fn task(&self, approach: bool) -> Result<Task> {
         let hand = match self.hand {
             HandArg::Left => Hand::Left,
             HandArg::Right => Hand::Right,
@@ -187,15 +279,12 @@ impl RunArgs {
         let task = match self.task {
             TaskKind::Walk => Task::walk(),
             TaskKind::Joystick => Task { joystick, ..Task::walk() },
-            TaskKind::Reach if self.approach => Task { reach: Some((hand, target()?)), approach: true, ..Task::walk() },
+            TaskKind::Reach if approach => Task { reach: Some((hand, target()?)), approach: true, ..Task::walk() },
             TaskKind::Reach => Task { joystick: walk_on, reach: Some((hand, target()?)), ..Task::walk() },
             TaskKind::Waypoint => Task { waypoint: Some(goal()?), ..Task::walk() },
-            TaskKind::Compose => Task {
-                waypoint: Some(goal()?),
-                reach: Some((hand, target()?)),
-                approach: self.approach,
-                ..Task::walk()
-            },
+            TaskKind::Compose => {
+                Task { waypoint: Some(goal()?), reach: Some((hand, target()?)), approach, ..Task::walk() }
+            }
         };
         task.validate()?;
         Ok(task)
@@ -215,9 +304,9 @@ impl RunArgs {
         }
     }
 
-    pub fn control(&self) -> ControlConfig {
-        let plain = ControlConfig::new(self.nfe, self.guidance_scale, self.seconds());
-        self.guidance.apply(ControlConfig { execute: self.execute, paced: self.paced, seed: self.seed, ..plain })
+    pub fn control(&self, chosen: &Chosen) -> ControlConfig {
+        let plain = chosen.control(self.drive.guidance.gradient, self.seconds());
+        ControlConfig { execute: self.execute, paced: self.paced, seed: self.seed, ..plain }
     }
 }
 
@@ -259,8 +348,10 @@ pub fn start_clip(humanoid: &Arc<Humanoid>, file: Option<&Path>) -> Result<Clip>
 pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     let model_dir = crate::paths::model_or_default(args.model.clone());
     let model = load_model(&model_dir)?;
-    let task = args.task()?;
-    let control = args.control();
+    let name = args.task_name();
+    let chosen = args.drive.choose(&recommended(&model_dir, &name)?, &name)?;
+    let task = args.task(chosen.approach)?;
+    let control = args.control(&chosen);
     if args.task == TaskKind::Joystick {
         let length: f64 = task.joystick.iter().map(|s| s.seconds).sum();
         if control.seconds < length - 1e-9 {
@@ -276,7 +367,6 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
         }
     }
     let clip = start_clip(humanoid, args.clip.as_deref())?;
-    let name = format!("{:?}", args.task).to_lowercase();
     let out = args.out.clone().unwrap_or_else(|| PathBuf::from("runs/run").join(format!("{name}.rollout.safetensors")));
     eprintln!(
         "{} model (H {}), NFE {}, guidance {} on steps {:?}, task {name}, {} env(s), {} s",

@@ -339,6 +339,10 @@ fn a_newcomers_mistakes_get_clear_answers() {
     let outcome = ok(&dir, &["eval", "outcome", "j.rollout.safetensors"]);
     assert!(run.contains("followed") && run.contains("+1.0, +0.0, +0.0"), "{run}");
     assert!(run.contains("the schedule is 12 s long") && outcome.contains("followed"), "{run}\n{outcome}");
+    // The model's recommended settings where a flag is absent, each said with its source.
+    assert!(run.contains("NFE 2 (model), w 50 (model), adaptive 1.5 (model)"), "{run}");
+    let flagged = ok(&dir, &["run", "--seconds", "0.2", "--nfe", "1", "-o", "w.rollout.safetensors"]);
+    assert!(flagged.contains("settings for walk: NFE 1 (flag), w 10 (default)"), "{flagged}");
     // A port in use is said once.
     let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let port = taken.local_addr().unwrap().port().to_string();
@@ -455,6 +459,7 @@ fn the_demo_follows_its_joystick_schedule_and_touches_the_target() {
         assert!(dir.join("demo").join(file).exists(), "demo/{file} missing");
     }
     let walk = models.join("fm-walk").display().to_string();
-    let (success, text) = flowmimic(&dir, &["demo", "--model", &walk, "-o", "demo-walk"]);
+    let args = ["demo", "--model", &walk, "--inverse-dynamics", "0.2", "-o", "demo-walk"];
+    let (success, text) = flowmimic(&dir, &args);
     assert!(!success && text.contains("no inverse.safetensors") && text.contains("--inverse-dynamics 0"), "{text}");
 }

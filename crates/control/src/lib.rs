@@ -6,6 +6,7 @@
 //! - [`layout`]: where the predicted actions and states sit in a trajectory;
 //! - [`history`]: the live conditioning `O_t`, built exactly as the training windows are;
 //! - [`adapt`]: adaptive guidance, a scale that follows the executed error;
+//! - [`recommended`]: a model directory's measured best settings per task;
 //! - [`costs`]: joystick velocity (paper eq. 7) and heading, end-effector reach (eq. 8),
 //!   waypoint navigation (BeyondMimic), and weighted sums.
 
@@ -14,6 +15,7 @@ pub mod controller;
 pub mod costs;
 pub mod history;
 pub mod layout;
+pub mod recommended;
 pub mod rollout;
 pub mod task;
 
@@ -22,6 +24,7 @@ pub use controller::{ControlConfig, Controller, StepOutcome, StepReport, run, st
 pub use costs::{Cost, Heading, Joystick, Pursuit, Reach, Sum};
 pub use history::History;
 pub use layout::Layout;
+pub use recommended::Recommended;
 pub use rollout::{Rollout, RolloutInfo, Row};
 pub use task::{Hand, HeadingHold, JoystickSegment, Task};
 

@@ -1,0 +1,95 @@
+//! A model directory's recommended settings, `recommended.toml`: how the model is best driven
+//! for each task, measured with the command written above each section. `flowmimic run`,
+//! `play`, `demo` and `eval` take them where a flag is absent.
+//!
+//! ```toml
+//! # flowmimic eval joystick --model fm=DIR --nfe 2 --scales 0,50 --adaptive 1.5 ...: 0.60 times unguided
+//! [joystick]
+//! nfe = 2
+//! guidance_scale = 50.0
+//! adaptive = 1.5
+//! inverse_dynamics = 0.2
+//! ```
+
+use crate::{Adaptive, ControlError};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// The file's name in a model directory.
+pub const FILE: &str = "recommended.toml";
+
+/// How to drive a model for one task; each setting absent where the model has no measured best.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Settings {
+    /// Network evaluations per control step.
+    pub nfe: Option<usize>,
+    /// Guidance scale w.
+    pub guidance_scale: Option<f32>,
+    /// Adaptive guidance's reference error (m/s and rad/s); 0 for the fixed scale.
+    pub adaptive: Option<f32>,
+    /// Share of the executed action read by inverse dynamics out of the plan, 0-1.
+    pub inverse_dynamics: Option<f32>,
+    /// Solver steps that apply guidance, `[start, end)`.
+    pub guidance_interval: Option<[usize; 2]>,
+    /// Walk up to a hand target (reach and compose).
+    pub approach: Option<bool>,
+}
+
+/// A model's recommended settings, per task.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Recommended {
+    /// Unguided walking (and the survival protocol).
+    pub walk: Settings,
+    pub joystick: Settings,
+    pub reach: Settings,
+    pub waypoint: Settings,
+    pub compose: Settings,
+}
+
+impl Settings {
+    fn validate(&self, task: &str) -> Result<(), String> {
+        let bad = |what: &str, value: String| Err(format!("[{task}] {what} = {value}"));
+        if let Some(n) = self.nfe.filter(|&n| n == 0) {
+            return bad("nfe", format!("{n}: at least 1"));
+        }
+        if let Some(w) = self.guidance_scale.filter(|w| !(w.is_finite() && *w >= 0.0)) {
+            return bad("guidance_scale", format!("{w}: a finite scale, 0 or more"));
+        }
+        if let Some(a) = self.adaptive.filter(|&a| a != 0.0 && Adaptive::new(a).is_err()) {
+            return bad("adaptive", format!("{a}: a reference error above 0, or 0 for the fixed scale"));
+        }
+        if let Some(b) = self.inverse_dynamics.filter(|b| !(0.0..=1.0).contains(b)) {
+            return bad("inverse_dynamics", format!("{b}: a share from 0 to 1"));
+        }
+        if let Some([a, b]) = self.guidance_interval.filter(|[a, b]| a >= b) {
+            return bad("guidance_interval", format!("[{a}, {b}]: start before end"));
+        }
+        Ok(())
+    }
+}
+
+impl Recommended {
+    /// The recommended settings of a model directory; none when it has no [`FILE`]. A file
+    /// that does not parse, or holds a value out of range, is an error naming it.
+    pub fn load(dir: &Path) -> Result<Self, ControlError> {
+        let path = dir.join(FILE);
+        if !path.exists() {
+            return Ok(Self::default());
+        }
+        let bad = |m: String| ControlError::Start(format!("{}: {m}", path.display()));
+        let text = flowmimic_io::read_to_string(&path).map_err(|e| ControlError::Start(e.to_string()))?;
+        let r: Self = toml::from_str(&text).map_err(|e| bad(e.to_string()))?;
+        for (task, s) in [
+            ("walk", &r.walk),
+            ("joystick", &r.joystick),
+            ("reach", &r.reach),
+            ("waypoint", &r.waypoint),
+            ("compose", &r.compose),
+        ] {
+            s.validate(task).map_err(bad)?;
+        }
+        Ok(r)
+    }
+}
