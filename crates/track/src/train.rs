@@ -62,6 +62,10 @@ pub struct TrackConfig {
     /// the rest pick one evenly. Long clips get practice in proportion to their motion, short
     /// ones keep a floor.
     pub clip_length_share: f64,
+    /// With several clips: the share of resets that pick a clip in proportion to its recent
+    /// failures (the smoothed counts of the start sampler), before the length and even draws
+    /// share the rest: clips that fail get practice, however short.
+    pub clip_failure_share: f64,
     /// The share of resets that start at the clip's first frame instead of an adaptively drawn
     /// one. Adaptive starts credit a failure to the frames where it happens, so a fall that
     /// follows seconds of drift is practised from a fresh start there, without the drift;
@@ -102,6 +106,7 @@ impl Default for TrackConfig {
             bin_smoothing: 0.1,
             uniform_share: 0.3,
             clip_length_share: 0.5,
+            clip_failure_share: 0.0,
             first_frame_share: 0.0,
             seed: 0,
             checkpoint_every: 25,
@@ -135,12 +140,12 @@ impl TrackConfig {
             self.bin_smoothing,
             self.uniform_share,
             self.clip_length_share,
+            self.clip_failure_share,
             self.first_frame_share,
         ];
         if unit.iter().any(|v| !(0.0..=1.0).contains(v)) {
-            return bad(
-                "gamma, lambda, bin_smoothing, uniform_share, clip_length_share and first_frame_share must be in [0, 1]",
-            );
+            return bad("gamma, lambda, bin_smoothing, uniform_share, clip_length_share, clip_failure_share and \
+                 first_frame_share must be in [0, 1]");
         }
         let rest =
             [self.entropy, self.value_coef, self.init_noise, self.push_max, self.max_height_error, self.max_tilt_error];
@@ -357,8 +362,15 @@ impl Trainer {
     }
 
     fn reset_env(&mut self, i: usize) -> Result<(), TrackError> {
-        let lengths: Vec<usize> = self.references.iter().map(|r| r.len()).collect();
-        let c = draw_clip(&lengths, self.cfg.clip_length_share, &mut self.rng);
+        // Drawn only when asked for, so that runs without it keep their random stream.
+        let by_failures = self.cfg.clip_failure_share > 0.0 && self.rng.random::<f64>() < self.cfg.clip_failure_share;
+        let c = if by_failures {
+            let failures: Vec<f64> = self.samplers.iter().map(|s| s.failures.iter().sum()).collect();
+            draw_weighted(&failures, &mut self.rng).unwrap_or_else(|| self.rng.random_range(0..failures.len()))
+        } else {
+            let lengths: Vec<usize> = self.references.iter().map(|r| r.len()).collect();
+            draw_clip(&lengths, self.cfg.clip_length_share, &mut self.rng)
+        };
         self.env_clips[i] = c;
         // Drawn only when asked for, so that runs without it keep their random stream.
         let first = self.cfg.first_frame_share > 0.0 && self.rng.random::<f64>() < self.cfg.first_frame_share;
@@ -653,6 +665,22 @@ fn draw_clip(lengths: &[usize], length_share: f64, rng: &mut impl Rng) -> usize 
         at -= len;
     }
     k - 1
+}
+
+/// An index drawn in proportion to `weights`; `None` when they sum to 0.
+fn draw_weighted(weights: &[f64], rng: &mut impl Rng) -> Option<usize> {
+    let total: f64 = weights.iter().sum();
+    if total <= 0.0 {
+        return None;
+    }
+    let mut at = rng.random::<f64>() * total;
+    for (i, &w) in weights.iter().enumerate() {
+        if at < w {
+            return Some(i);
+        }
+        at -= w;
+    }
+    Some(weights.len() - 1)
 }
 
 pub const POLICY_FORMAT: &str = "flowmimic-policy/1";
@@ -1003,6 +1031,16 @@ mod tests {
             assert!((got - expected).abs() < 0.015, "share {share}: {got} of episodes on the long clip");
         }
         assert_eq!(draw_clip(&[5], 1.0, &mut rng), 0);
+    }
+
+    #[test]
+    fn clips_that_fail_are_drawn_in_proportion_to_their_failures() {
+        let mut rng = StdRng::seed_from_u64(4);
+        let n = 20_000;
+        let draws: Vec<usize> = (0..n).map(|_| draw_weighted(&[3.0, 0.0, 1.0], &mut rng).unwrap()).collect();
+        let share = |c: usize| draws.iter().filter(|&&d| d == c).count() as f64 / n as f64;
+        assert!((share(0) - 0.75).abs() < 0.015 && share(1) == 0.0, "{} {}", share(0), share(1));
+        assert_eq!(draw_weighted(&[0.0, 0.0], &mut rng), None, "no failures yet: no weights");
     }
 
     #[test]
