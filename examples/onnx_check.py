@@ -5,12 +5,14 @@
     python3 examples/onnx_check.py fm.onnx fm.check.safetensors runs/demo/joystick.rollout.safetensors
 
 Needs numpy and onnxruntime (`pip install numpy onnxruntime`), nothing else. For a trajectory
-model it compares the network's output and, for Flow Matching, an Euler sampler at NFE 5 written
-here against flowmimic's samples from the same noise; given the rollout, it also builds the
-conditioning from the rollout's states and actions as flowmimic's controller does (states
-re-expressed in the current character frame, normalised with the statistics in the graph's
-metadata) and samples from it. For an expert it compares the actions. It then times ONNX
-Runtime's forward pass at batch 1 and 64. Exits non-zero when a comparison fails.
+model it compares the network's output, then samples with the objective's sampler written out
+here (`sample`: Flow Matching's Euler steps, MeanFlow's jumps, DDPM's ancestral steps, each
+reading a velocity, clean-sample or noise prediction as the metadata says) against flowmimic's
+samples from the same noise; given the rollout, it also builds the conditioning from the
+rollout's states and actions as flowmimic's controller does (states re-expressed in the current
+character frame, normalised with the statistics in the graph's metadata) and samples from it.
+For an expert it compares the actions. It then times ONNX Runtime's forward pass at batch 1 and
+64. Exits non-zero when a comparison fails.
 """
 
 import json
@@ -113,6 +115,60 @@ def normaliser(meta):
     return (interleave(stats["state_mean"], stats["action_mean"]), interleave(stats["state_std"], stats["action_std"]))
 
 
+MIN_REMAINING = 0.05  # the smallest 1 - s a clean-sample flow network's velocity divides by
+
+
+def cosine_alpha_bar(steps):
+    """DDPM's cosine schedule, cumulative products of 1 - beta (float64, as flowmimic)."""
+    f = lambda k: np.cos(((k / steps) + 0.008) / 1.008 * np.pi / 2) ** 2
+    alpha_bar = [1.0]
+    for k in range(1, steps + 1):
+        alpha_bar.append(alpha_bar[-1] * (1.0 - min(1.0 - f(k) / f(k - 1), 0.999)))
+    return alpha_bar
+
+
+def sample(run, objective, noise, cond, nfe, ancestral_noise=None):
+    """flowmimic's sampler of `objective` at `nfe` network calls from `noise` (normalised units).
+    `run(x, t, cond)` is the network."""
+    (kind, o), = objective.items()
+    x, n = noise.copy(), len(noise)
+    f32 = np.float32
+    if kind in ("fm", "meanflow"):
+        assert o.get("solver", "Euler") == "Euler", "Heun's method is not written out here"
+        h = f32(1.0 / nfe)
+        for step in range(nfe):
+            s = f32(step) * h
+            # Flow Matching's network takes the time s; MeanFlow's the interval (s, h) it jumps.
+            t = np.full(n, s, dtype=f32) if kind == "fm" else np.tile(np.array([s, h], dtype=f32), (n, 1))
+            y = run(x, t, cond)
+            # A clean-sample network's velocity is (x_hat - x) / (1 - s).
+            v = (y - x) / f32(max(1.0 - s, MIN_REMAINING)) if o.get("prediction") == "sample" else y
+            x = x + h * v
+        return x
+    # DDPM: respaced ancestral sampling on the cosine schedule, clean estimates clipped.
+    steps, clip = o["steps"], f32(o["clip"])
+    alpha_bar = cosine_alpha_bar(steps)
+    m = min(max(nfe, 1), steps)
+    ks = [int(np.floor(i * steps / m + 0.5)) for i in range(1, m + 1)]
+    prev, betas = 1.0, []
+    for k in ks:
+        betas.append(1.0 - alpha_bar[k] / prev)
+        prev = alpha_bar[k]
+    for i in reversed(range(len(ks))):
+        k, beta, ab = ks[i], betas[i], alpha_bar[ks[i]]
+        ab_prev = 1.0 if i == 0 else alpha_bar[ks[i - 1]]
+        sa, s1a = f32(np.sqrt(ab)), f32(np.sqrt(1.0 - ab))
+        a, b = (f32(1.0) / sa, -s1a / sa) if o["prediction"] == "epsilon" else (f32(0.0), f32(1.0))
+        out = run(x, np.full(n, f32(k) / f32(steps), dtype=f32), cond)
+        x0 = np.clip(a * x + b * out, -clip, clip)
+        if i == 0:
+            return x0
+        c0 = f32(np.sqrt(ab_prev) * beta / (1.0 - ab))
+        ck = f32(np.sqrt(1.0 - beta) * (1.0 - ab_prev) / (1.0 - ab))
+        sd = f32(np.sqrt(beta * (1.0 - ab_prev) / (1.0 - ab)))
+        x = c0 * x0 + ck * x + sd * ancestral_noise[len(ks) - 1 - i]
+
+
 def relative_error(got, expected):
     return float(np.max(np.abs(got - expected)) / max(np.max(np.abs(expected)), 1e-12))
 
@@ -141,13 +197,10 @@ def main():
     errors = {}
     if meta["kind"] == "trajectory-model":
         run = lambda x, t, cond: session.run(["y"], {"x": x, "t": t, "cond": cond})[0]
+        objective, nfe = json.loads(meta["objective"]), int(check_meta["nfe"])
         errors["network output"] = relative_error(run(data["x"], data["t"], data["cond"]), data["y"])
-        if "euler_nfe5" in data:
-            x, nfe = data["noise"].copy(), 5
-            for step in range(nfe):
-                t = np.full(len(x), step / nfe, dtype=np.float32)
-                x = x + (1.0 / nfe) * run(x, t, data["cond"])
-            errors["Euler samples, NFE 5"] = relative_error(x, data["euler_nfe5"])
+        got = sample(run, objective, data["noise"], data["cond"], nfe, data.get("ancestral_noise"))
+        errors[f"samples, NFE {nfe}"] = relative_error(got, data["samples"])
         if len(sys.argv) == 4:
             rollout, _ = read_safetensors(sys.argv[3])
             layout = json.loads(meta["layout"])
@@ -155,11 +208,9 @@ def main():
             errors["conditioning from the rollout"] = relative_error(cond, data["rollout_cond"])
             mean, std = normaliser(meta)
             c = cond.shape[1]
-            cond = (cond - mean[:c]) / std[:c]
-            x = data["rollout_noise"].copy()
-            for step in range(5):
-                x = x + 0.2 * run(x, np.full(1, step / 5, dtype=np.float32), cond.astype(np.float32))
-            errors["Euler samples from the rollout's conditioning"] = relative_error(x, data["rollout_euler_nfe5"])
+            cond = ((cond - mean[:c]) / std[:c]).astype(np.float32)
+            got = sample(run, objective, data["rollout_noise"], cond, nfe, data.get("rollout_ancestral_noise"))
+            errors["samples from the rollout's conditioning"] = relative_error(got, data["rollout_samples"])
         for batch in (1, 64):
             rows = np.arange(batch) % len(data["x"])
             x, t, cond = data["x"][rows], data["t"][rows], data["cond"][rows]

@@ -5,7 +5,6 @@ use crate::track::RUN_POLICY;
 use anyhow::{Context, Result, bail};
 use flowmimic_control::{History, Rollout};
 use flowmimic_geom::{heading, quat_from_wxyz};
-use flowmimic_model::fm::{self, Solver};
 use flowmimic_model::{Objective, TrajectoryModel};
 use flowmimic_sim::Humanoid;
 use flowmimic_sim::{NUM_DOFS, STATE_DIM};
@@ -49,46 +48,50 @@ pub fn run(
             flowmimic_export::OPSET
         );
         if let Some(check) = check {
-            // Normalised inputs, the network's outputs and, for Flow Matching, Euler samples.
+            // Normalised inputs, the network's outputs, and samples of the objective's sampler
+            // from stored noise (with DDPM's ancestral noise, drawn after it).
             let layout = model.layout();
             let (c, f) = (layout.cond_len(), layout.future_len());
+            let times = if matches!(model.objective, Objective::MeanFlow { .. }) { 2 } else { 1 };
             let (x, cond, noise) = (normal(n * f, &mut rng), normal(n * c, &mut rng), normal(n * f, &mut rng));
-            let t: Vec<f32> = (0..n).map(|i| (i as f32 + 0.5) / n as f32).collect();
+            let t: Vec<f32> = (0..n * times).map(|i| (i as f32 + 0.5) / (n * times) as f32).collect();
             let y = flowmimic_model::Network::predict(&model.net, &x, &t, &cond, n);
-            let mut tensors = vec![("x", vec![n, f], &x[..]), ("t", vec![n], &t[..]), ("cond", vec![n, c], &cond[..])];
-            tensors.push(("y", vec![n, f], &y[..]));
-            let samples;
-            let flow_matching = matches!(model.objective, Objective::Fm { .. });
-            if flow_matching {
-                samples = fm::sample(&model.net, &cond, noise.clone(), n, CHECK_NFE, Solver::Euler, None);
-                tensors.extend([("noise", vec![n, f], &noise[..]), ("euler_nfe5", vec![n, f], &samples[..])]);
+            let (samples, z) = sampled(&model, &cond, &noise, n, &mut rng);
+            let mut tensors = vec![
+                ("x", vec![n, f], &x[..]),
+                ("t", if times == 1 { vec![n] } else { vec![n, times] }, &t[..]),
+                ("cond", vec![n, c], &cond[..]),
+                ("y", vec![n, f], &y[..]),
+                ("noise", vec![n, f], &noise[..]),
+                ("samples", vec![n, f], &samples[..]),
+            ];
+            if !z.is_empty() {
+                tensors.push(("ancestral_noise", vec![CHECK_NFE - 1, n, f], &z[..]));
             }
-            let (physical, rollout_samples);
+            let (physical, rollout_samples, rollout_z);
             if let Some(file) = rollout {
                 // The controller's conditioning at a rollout's step, and samples from it.
-                if !flow_matching {
-                    bail!(
-                        "--rollout checks Flow Matching's Euler sampler; {} is {}",
-                        path.display(),
-                        model.objective.name()
-                    );
-                }
                 let r = Rollout::load(file)?;
                 physical = rollout_conditioning(&model, &r, step).with_context(|| format!("{}", file.display()))?;
                 let mut normalised = physical.clone();
                 model.norm.normalise(&mut normalised, 0, c);
                 let noise = &x[..f];
-                rollout_samples =
-                    fm::sample(&model.net, &normalised, noise.to_vec(), 1, CHECK_NFE, Solver::Euler, None);
+                (rollout_samples, rollout_z) = sampled(&model, &normalised, noise, 1, &mut rng);
                 tensors.extend([
                     ("rollout_cond", vec![1, c], &physical[..]),
                     ("rollout_noise", vec![1, f], noise),
-                    ("rollout_euler_nfe5", vec![1, f], &rollout_samples[..]),
+                    ("rollout_samples", vec![1, f], &rollout_samples[..]),
                 ]);
+                if !rollout_z.is_empty() {
+                    tensors.push(("rollout_ancestral_noise", vec![CHECK_NFE - 1, 1, f], &rollout_z[..]));
+                }
             }
-            let meta = HashMap::from([("rollout_step".to_string(), step.to_string())]);
+            let meta = HashMap::from([
+                ("rollout_step".to_string(), step.to_string()),
+                ("nfe".to_string(), CHECK_NFE.to_string()),
+            ]);
             flowmimic_io::tensors::save(check, &tensors, meta)?;
-            eprintln!("wrote {}: {n} inputs and flowmimic's outputs", check.display());
+            eprintln!("wrote {}: {n} inputs and flowmimic's outputs and samples", check.display());
         }
     } else if path.join(RUN_POLICY).exists() {
         let checkpoint = Checkpoint::read(&path.join(RUN_POLICY))?;
@@ -121,6 +124,22 @@ pub fn run(
         );
     }
     Ok(())
+}
+
+/// Samples of the model's own sampler at [`CHECK_NFE`] from `noise` (normalised units), and the
+/// ancestral noise DDPM drew for them (empty for the deterministic samplers): the sampler draws
+/// it from `rng` in order, so a copy of `rng` taken before gives the same values.
+fn sampled(model: &TrajectoryModel, cond: &[f32], noise: &[f32], n: usize, rng: &mut StdRng) -> (Vec<f32>, Vec<f32>) {
+    let before = rng.clone();
+    let samples = model.sample_from(cond, noise.to_vec(), n, CHECK_NFE, None, rng);
+    let z = match model.objective {
+        Objective::Ddpm { .. } => {
+            let mut replay = before;
+            (0..(CHECK_NFE - 1) * noise.len()).map(|_| StandardNormal.sample(&mut replay)).collect()
+        }
+        _ => Vec::new(),
+    };
+    (samples, z)
 }
 
 /// The conditioning (physical units) that the controller builds at `step` of environment 0 of

@@ -2,11 +2,13 @@
 //! same networks as standard graphs for ONNX Runtime, TensorRT and the like, built from
 //! `onnx-protobuf`'s messages.
 //!
-//! `model.onnx` (a trajectory model): inputs `x` (B x F: the noised future, normalised), `t` (B:
-//! the noise level in [0, 1]) and `cond` (B x C: the conditioning, normalised); output `y`
-//! (B x F): what flowmimic's network predicts (the velocity for Flow Matching, the objective's
-//! prediction for DDPM). The metadata holds the config, objective, token layout and the
-//! normalisation statistics as JSON.
+//! `model.onnx` (a trajectory model of any objective and token pairing): inputs `x` (B x F: the
+//! noised future, normalised), `t` (B: the noise level in [0, 1]; B x 2 for MeanFlow: the
+//! interval's start and length) and `cond` (B x C: the conditioning, normalised); output `y`
+//! (B x F): what flowmimic's network predicts, as the objective says (a velocity or a clean
+//! sample for Flow Matching and MeanFlow, a noise or a clean sample for DDPM). The metadata
+//! holds the config, objective, token layout, number of times and the normalisation statistics
+//! as JSON; `examples/onnx_check.py` writes out each objective's sampler.
 //!
 //! `policy.onnx` (an expert): input `obs` (B x 295, raw observations), output `action` (B x 69,
 //! the deterministic action); the observation normalisation is folded in.
@@ -190,21 +192,12 @@ impl Graph {
     }
 }
 
-/// The trajectory model's denoiser as an ONNX graph (see the crate's documentation).
+/// The trajectory model's denoiser as an ONNX graph (see the crate's documentation): every
+/// objective and token pairing. Its output is the network's own (a velocity, a clean sample or
+/// a noise, as the objective in its metadata says); MeanFlow's network takes two times per
+/// sample, the interval's start and length.
 pub fn trajectory_model(model: &TrajectoryModel) -> Result<Vec<u8>, ExportError> {
-    // The graph takes one noise level per sample; MeanFlow's network takes two. Its output is
-    // the network's own, which a user's Euler loop reads as a velocity.
-    match model.objective {
-        Objective::MeanFlow { .. } => {
-            return Err(ExportError::Unsupported("MeanFlow models (two times per sample) do not export yet".into()));
-        }
-        Objective::Fm { prediction: flowmimic_model::fm::Prediction::Sample, .. } => {
-            return Err(ExportError::Unsupported(
-                "Flow Matching models that predict the clean sample do not export yet".into(),
-            ));
-        }
-        Objective::Fm { .. } | Objective::Ddpm { .. } => {}
-    }
+    let times = if matches!(model.objective, Objective::MeanFlow { .. }) { 2 } else { 1 };
     let layout = model.layout();
     let net = &model.net.net;
     let c = net.config;
@@ -218,7 +211,7 @@ pub fn trajectory_model(model: &TrajectoryModel) -> Result<Vec<u8>, ExportError>
     let dh = d / heads;
     let mut g = Graph::new("flowmimic_trajectory_model");
     let x = g.input("x", &[None, Some(future_len)]);
-    let t = g.input("t", &[None]);
+    let t = if times == 1 { g.input("t", &[None]) } else { g.input("t", &[None, Some(times)]) };
     let cond = g.input("cond", &[None, Some(cond_len)]);
     let linear = |g: &mut Graph, x: &str, name: &str, inputs: usize| -> Result<String, ExportError> {
         Ok(g.linear(x, param(&format!("{name}.weight"))?, param(&format!("{name}.bias"))?, inputs))
@@ -228,28 +221,34 @@ pub fn trajectory_model(model: &TrajectoryModel) -> Result<Vec<u8>, ExportError>
         let beta = g.floats("beta", &[d], param(&format!("{name}.beta"))?);
         Ok(g.node("LayerNormalization", &[x, &gamma, &beta], vec![int("axis", -1), float("epsilon", 1e-5)]))
     };
-    // Tokens: concat(cond, x), padded with zeros as the pairing asks, cut into `tokens` rows.
-    let (before, after) = model.net.padding().ok_or_else(|| {
-        ExportError::Unsupported("state-action-state tokens (each state in two tokens) do not export yet".into())
-    })?;
-    let mut joined = g.node("Concat", &[&cond, &x], vec![int("axis", 1)]);
-    if before + after > 0 {
-        let pads = g.int64s(&[0, before as i64, 0, after as i64]);
-        joined = g.op("Pad", &[&joined, &pads]);
-    }
-    let input = g.reshape(&joined, &[-1, tokens, token_dim as i64]);
+    // Tokens: the entries of concat(cond, x) each token entry holds, as the pairing gathers them
+    // (an appended zero where it pads), cut into `tokens` rows.
+    let joined = g.node("Concat", &[&cond, &x], vec![int("axis", 1)]);
+    let pads = g.int64s(&[0, 0, 0, 1]);
+    let padded = g.op("Pad", &[&joined, &pads]);
+    let sources: Vec<i64> = model.net.token_sources().iter().map(|j| j.unwrap_or(window) as i64).collect();
+    let sources = g.int64s(&sources);
+    let gathered = g.node("Gather", &[&padded, &sources], vec![int("axis", 1)]);
+    let input = g.reshape(&gathered, &[-1, tokens, token_dim as i64]);
     let mut h = linear(&mut g, &input, "input", token_dim)?;
-    // Time(t) = sinusoids(1000 t) W_t, features [sin a_0, cos a_0, sin a_1, ...].
-    let half = c.time_features / 2;
+    // Time(t) = sinusoids(1000 t) W_t, features [sin a_0, cos a_0, sin a_1, ...] of each time in
+    // turn; two times come in hundredths.
+    let half = c.time_features / times / 2;
     let freqs: Vec<f32> = (0..half).map(|j| (-(10000f32).ln() * j as f32 / half as f32).exp()).collect();
-    let t1 = g.unsqueeze(&t, 1);
+    let per_time = if times == 1 {
+        g.unsqueeze(&t, 1)
+    } else {
+        let hundredths = g.scalar(flowmimic_model::trajectory::TWO_TIMES_SCALE);
+        g.op("Mul", &[&t, &hundredths])
+    };
     let thousand = g.scalar(1000.0);
-    let scaled = g.op("Mul", &[&t1, &thousand]);
+    let scaled = g.op("Mul", &[&per_time, &thousand]);
+    let scaled = g.unsqueeze(&scaled, 2);
     let freqs = g.floats("freqs", &[half], &freqs);
     let angles = g.op("Mul", &[&scaled, &freqs]);
     let (sin, cos) = (g.op("Sin", &[&angles]), g.op("Cos", &[&angles]));
-    let (sin, cos) = (g.unsqueeze(&sin, 2), g.unsqueeze(&cos, 2));
-    let pairs = g.node("Concat", &[&sin, &cos], vec![int("axis", 2)]);
+    let (sin, cos) = (g.unsqueeze(&sin, 3), g.unsqueeze(&cos, 3));
+    let pairs = g.node("Concat", &[&sin, &cos], vec![int("axis", 3)]);
     let features = g.reshape(&pairs, &[-1, c.time_features as i64]);
     let temb = linear(&mut g, &features, "time", c.time_features)?;
     let temb = g.unsqueeze(&temb, 1);
@@ -296,10 +295,11 @@ pub fn trajectory_model(model: &TrajectoryModel) -> Result<Vec<u8>, ExportError>
     }
     let last = layer_norm(&mut g, &h, "ln_out")?;
     let out = linear(&mut g, &last, "output", d)?;
-    let flat = g.reshape(&out, &[-1, (before + window + after) as i64]);
-    let start = before + cond_len;
-    let (starts, ends, axes) = (g.int64s(&[start as i64]), g.int64s(&[(start + future_len) as i64]), g.int64s(&[1]));
-    let future = g.op("Slice", &[&flat, &starts, &ends, &axes]);
+    // The future read back: each entry from the token entry that predicts it.
+    let flat = g.reshape(&out, &[-1, tokens * token_dim as i64]);
+    let entries: Vec<i64> = model.net.output_entries()[cond_len..].iter().map(|&p| p as i64).collect();
+    let entries = g.int64s(&entries);
+    let future = g.node("Gather", &[&flat, &entries], vec![int("axis", 1)]);
     g.output(&future, "y", &[None, Some(future_len)]);
     let json = |v: serde_json::Result<String>| v.map_err(|e| ExportError::Encode(e.to_string()));
     g.encode(vec![
@@ -308,6 +308,7 @@ pub fn trajectory_model(model: &TrajectoryModel) -> Result<Vec<u8>, ExportError>
         ("objective", json(serde_json::to_string(&model.objective))?),
         ("config", json(serde_json::to_string(&model.config))?),
         ("layout", json(serde_json::to_string(layout))?),
+        ("times", times.to_string()),
         ("stats", json(serde_json::to_string(&model.stats))?),
     ])
 }

@@ -395,14 +395,16 @@ impl TrajectoryNet {
         out
     }
 
-    /// Zeros a sample's tokens hold before and after its window (for the ONNX graph), or `None`
-    /// where tokens are not a padded window.
-    pub fn padding(&self) -> Option<(usize, usize)> {
-        match self.pairing {
-            Pairing::StateAction => Some((0, 0)),
-            Pairing::ActionState => Some((self.layout.action_dim, self.layout.state_dim)),
-            Pairing::StateActionState => None,
-        }
+    /// For each entry of a sample's tokens, the entry of `concat(cond, x)` it holds (`None`:
+    /// zero padding): how an exported graph builds the tokens.
+    pub fn token_sources(&self) -> &[Option<usize>] {
+        &self.gather
+    }
+
+    /// For each entry of `concat(cond, x)`, the token entry the network predicts it in: how an
+    /// exported graph reads the future back.
+    pub fn output_entries(&self) -> &[usize] {
+        &self.own
     }
 }
 
@@ -410,10 +412,14 @@ impl TrajectoryNet {
 /// to 1000 rad per unit of time; MeanFlow's target differentiates the network along the path,
 /// and at that rate the derivative of an untrained network is of order 1000 and training
 /// diverges (measured with the `tiny` preset: loss 429 -> 3,211 in 200 steps). So a network of
-/// two times (MeanFlow's) takes them in hundredths, at most 10 rad per unit (loss 1.95 -> 1.75).
+/// two times (MeanFlow's) takes them in hundredths ([`TWO_TIMES_SCALE`]), at most 10 rad per
+/// unit (loss 1.95 -> 1.75).
 fn network_times(t: &[f32], n: usize) -> std::borrow::Cow<'_, [f32]> {
-    if t.len() == 2 * n { t.iter().map(|t| 0.01 * t).collect::<Vec<f32>>().into() } else { t.into() }
+    if t.len() == 2 * n { t.iter().map(|t| TWO_TIMES_SCALE * t).collect::<Vec<f32>>().into() } else { t.into() }
 }
+
+/// The factor on the times of a network of two times per sample (MeanFlow's).
+pub const TWO_TIMES_SCALE: f32 = 0.01;
 
 impl Network for TrajectoryNet {
     fn dim(&self) -> usize {
@@ -502,20 +508,34 @@ impl TrajectoryModel {
             gradient: g.gradient,
         });
         let noise: Vec<f32> = (0..n * f).map(|_| StandardNormal.sample(rng)).collect();
-        let mut x = match self.objective {
+        let mut x = self.sample_from(&cond, noise, n, nfe, inner.as_ref(), rng);
+        self.norm.denormalise(&mut x, c, f);
+        x
+    }
+
+    /// Samples futures from `noise` (n x future) given normalised conditionings, in normalised
+    /// units, with the objective's sampler at `nfe` (DDPM's ancestral steps draw from `rng`).
+    pub fn sample_from(
+        &self,
+        cond: &[f32],
+        noise: Vec<f32>,
+        n: usize,
+        nfe: usize,
+        guidance: Option<&Guidance>,
+        rng: &mut impl Rng,
+    ) -> Vec<f32> {
+        match self.objective {
             Objective::Fm { solver, .. } => {
-                self.with_flow_net(|net| fm::sample(net, &cond, noise, n, nfe, solver, inner.as_ref()))
+                self.with_flow_net(|net| fm::sample(net, cond, noise, n, nfe, solver, guidance))
             }
             Objective::MeanFlow { .. } => {
-                self.with_flow_net(|net| meanflow::sample(net, &cond, noise, n, nfe, inner.as_ref()))
+                self.with_flow_net(|net| meanflow::sample(net, cond, noise, n, nfe, guidance))
             }
             Objective::Ddpm { steps, prediction, clip } => {
                 let schedule = ddpm::Schedule::cosine(steps);
-                ddpm::sample(&self.net, &schedule, prediction, &cond, noise, n, nfe, clip, inner.as_ref(), rng)
+                ddpm::sample(&self.net, &schedule, prediction, cond, noise, n, nfe, clip, guidance, rng)
             }
-        };
-        self.norm.denormalise(&mut x, c, f);
-        x
+        }
     }
 
     /// Runs `f` on the network as Flow Matching's and MeanFlow's samplers and MeanFlow's target
