@@ -204,7 +204,7 @@ pub fn train(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, out: &Path, cfg: &Track
         }
         Start::Fresh => Trainer::new(humanoid, clips, cfg.clone())?,
     };
-    let mut log = CsvLog::open(log_path.clone(), IterationLog::CSV_HEADER, resume.then_some(trainer.iteration));
+    let mut log = CsvLog::open(log_path.clone(), &IterationLog::csv_header(), resume.then_some(trainer.iteration));
     let mut clip_log = CsvLog::open(out.join("clips.csv"), CLIPS_CSV_HEADER, resume.then_some(trainer.iteration));
     let names: Vec<String> = trainer.references.iter().map(|r| r.clip.name.clone()).collect();
     let mut since_checkpoint = vec![ClipLog::default(); names.len()];

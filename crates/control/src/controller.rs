@@ -21,6 +21,7 @@ use std::time::{Duration, Instant};
 /// Sampler and episode settings.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ControlConfig {
+    /// Network evaluations per control step (solver steps; Heun takes two per step).
     pub nfe: usize,
     /// `w` in `v' = v - w grad G`; 0 runs the model unguided. Each task's gradient is scaled
     /// to its error (see [`crate::Sum::guidance_grad`]), so `w` means the same across tasks.
@@ -36,6 +37,7 @@ pub struct ControlConfig {
     /// Solver steps [start, end) that apply guidance; default: all but the last quarter (the
     /// paper guides 15 of 20).
     pub guidance_steps: Option<(usize, usize)>,
+    /// Simulated seconds to run.
     pub seconds: f64,
     /// Actions of each sampled trajectory executed before sampling again (1: the paper's
     /// receding horizon; up to H + 1).
@@ -48,6 +50,7 @@ pub struct ControlConfig {
     pub inverse_dynamics: f32,
     /// Sleep so that steps happen at 30 Hz of wall-clock time.
     pub paced: bool,
+    /// Seed of the controller's random stream: the sampler's noise and the kicks.
     pub seed: u64,
     /// A random planar root-velocity kick every this many seconds (0: none) ...
     pub kick_every: f64,

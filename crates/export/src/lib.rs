@@ -329,7 +329,7 @@ fn gelu(g: &mut Graph, x: &str) -> String {
 
 /// An expert's deterministic actor with its observation normalisation folded in.
 pub fn policy(policy: &Policy, clip: &str) -> Result<Vec<u8>, ExportError> {
-    let n = &policy.normalizer;
+    let n = &policy.normaliser;
     let dim = n.mean.len();
     let mut g = Graph::new("flowmimic_expert");
     let obs = g.input("obs", &[None, Some(dim)]);

@@ -8,7 +8,8 @@
 //! diverged. Sampling at any NFE respaces the schedule in closed form: for chosen steps `k_1 < ... < k_M = T`,
 //! `abar'_i = abar_{k_i}` and `beta'_i = 1 - abar_{k_i} / abar_{k_{i-1}}` (with `abar_{k_0} = 1`).
 
-use crate::{Guidance, Network, TrainingBatch, guided_prediction};
+use crate::guidance::guided_prediction;
+use crate::{Guidance, Network, TrainingBatch};
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};

@@ -19,7 +19,8 @@
 //!   the network's values, not its derivatives, and on the toy mixture its one step lands where
 //!   the identity's does not at the same budget (`tests/toy.rs`).
 
-use crate::{Guidance, Network, TrainingBatch, fm, guided_velocity};
+use crate::guidance::guided_velocity;
+use crate::{Guidance, Network, TrainingBatch, path};
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
@@ -59,7 +60,7 @@ pub fn training_batch(
         // Drawn only where used, so that the identity's batches stay as they were.
         splits.push(if consistency == Consistency::Split { rng.random::<f32>() } else { 0.0 });
     }
-    let (x, v) = fm::on_path(x1, dim, |row| t[2 * row], rng);
+    let (x, v) = path::on_path(x1, dim, |row| t[2 * row], rng);
     let mut target = v.clone();
     let wide: Vec<usize> = (0..n).filter(|&i| t[2 * i + 1] > 0.0).collect();
     if wide.is_empty() {

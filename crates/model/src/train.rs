@@ -13,7 +13,7 @@
 
 use crate::inverse::{INVERSE_FILE, InverseDynamics};
 use crate::trajectory::{Normaliser, Objective, TokenLayout, TrajectoryModel};
-use crate::{ModelConfig, TrainingBatch, ddpm, fm, meanflow};
+use crate::{ModelConfig, TrainingBatch, ddpm, fm, meanflow, path};
 use flowmimic_data::{DataError, Dataset, Shard, Stats, window, window_starts};
 use flowmimic_io::tensors::{self, TensorError, TensorFile};
 use flowmimic_nn::Adam;
@@ -58,8 +58,8 @@ pub struct TrainConfig {
     /// `split` (two jumps make one; see `meanflow::Consistency`).
     pub meanflow_consistency: meanflow::Consistency,
     /// What Flow Matching's and MeanFlow's network predicts: `velocity` (the paper) or
-    /// `sample` (the clean sample, read as a velocity; see `fm::Prediction`).
-    pub flow_prediction: fm::Prediction,
+    /// `sample` (the clean sample, read as a velocity; see `path::Prediction`).
+    pub flow_prediction: path::Prediction,
     /// DDPM's training steps T.
     pub ddpm_steps: usize,
     /// What DDPM's network predicts: `sample` (x_0) or `epsilon`.
@@ -114,7 +114,7 @@ impl Default for TrainConfig {
             fm_solver: fm::Solver::Euler,
             meanflow_share: 0.5,
             meanflow_consistency: meanflow::Consistency::Derivative,
-            flow_prediction: fm::Prediction::Velocity,
+            flow_prediction: path::Prediction::Velocity,
             ddpm_steps: 100,
             ddpm_prediction: ddpm::Prediction::Sample,
             ddpm_clip: 6.0,
@@ -356,7 +356,7 @@ impl Trainer {
                 ddpm::training_batch(&ddpm::Schedule::cosine(steps), prediction, clean, dim, rng)
             }
         };
-        if self.model.objective.predicts_clean_flow() { fm::clean_sample_target(batch, dim) } else { batch }
+        if self.model.objective.predicts_clean_flow() { path::clean_sample_target(batch, dim) } else { batch }
     }
 
     /// Mean squared error of the prediction on `rows` of a side, and the parameter gradient

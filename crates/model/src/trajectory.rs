@@ -11,7 +11,7 @@
 
 use crate::fm::{self, Solver};
 use crate::inverse::InverseDynamics;
-use crate::{Gradient, Guidance, Network, ddpm, meanflow};
+use crate::{Gradient, Guidance, Network, ddpm, meanflow, path};
 use flowmimic_data::{Stats, WindowSpec};
 use flowmimic_nn::{Transformer, TransformerConfig};
 use rand::rngs::StdRng;
@@ -198,14 +198,14 @@ pub enum Objective {
         solver: Solver,
         /// Files written before the choice existed predicted the velocity.
         #[serde(default)]
-        prediction: fm::Prediction,
+        prediction: path::Prediction,
     },
     /// MeanFlow: average velocity over an interval, regressed on a share `share` of samples
     /// with an interval (the rest plain FM), sampled in NFE equal jumps.
     MeanFlow {
         share: f32,
         #[serde(default)]
-        prediction: fm::Prediction,
+        prediction: path::Prediction,
         /// Files written before the choice existed used the MeanFlow identity.
         #[serde(default)]
         consistency: meanflow::Consistency,
@@ -266,12 +266,12 @@ impl Objective {
         if notes.is_empty() { name } else { format!("{name} ({})", notes.join(", ")) }
     }
 
-    /// Whether a flow network predicts the clean sample (see [`fm::CleanSample`]).
+    /// Whether a flow network predicts the clean sample (see [`path::CleanSample`]).
     pub fn predicts_clean_flow(&self) -> bool {
         matches!(
             self,
-            Objective::Fm { prediction: fm::Prediction::Sample, .. }
-                | Objective::MeanFlow { prediction: fm::Prediction::Sample, .. }
+            Objective::Fm { prediction: path::Prediction::Sample, .. }
+                | Objective::MeanFlow { prediction: path::Prediction::Sample, .. }
         )
     }
 
@@ -539,9 +539,9 @@ impl TrajectoryModel {
     }
 
     /// Runs `f` on the network as Flow Matching's and MeanFlow's samplers and MeanFlow's target
-    /// read it: as a velocity, through [`fm::CleanSample`] when it predicts the clean sample.
+    /// read it: as a velocity, through [`path::CleanSample`] when it predicts the clean sample.
     pub(crate) fn with_flow_net<R>(&self, f: impl FnOnce(&dyn Network) -> R) -> R {
-        if self.objective.predicts_clean_flow() { f(&fm::CleanSample(&self.net)) } else { f(&self.net) }
+        if self.objective.predicts_clean_flow() { f(&path::CleanSample(&self.net)) } else { f(&self.net) }
     }
 
     /// Network FLOPs of one sampling call for `n` samples at `nfe`.
@@ -553,7 +553,8 @@ impl TrajectoryModel {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::{Gradient, guided_prediction};
+    use crate::Gradient;
+    use crate::guidance::guided_prediction;
 
     /// A small network with random weights everywhere, so every path of the pullback counts.
     fn small_net(pairing: Pairing) -> TrajectoryNet {
@@ -608,7 +609,7 @@ mod tests {
         }
         // A network predicting the clean sample, read as a velocity.
         let net = small_net(Pairing::StateAction);
-        guidance_matches_finite_differences(&crate::fm::CleanSample(&net), &net.layout);
+        guidance_matches_finite_differences(&crate::path::CleanSample(&net), &net.layout);
     }
 
     fn guidance_matches_finite_differences(net: &dyn Network, layout: &TokenLayout) {

@@ -4,7 +4,7 @@
 use flowmimic_model::ddpm::{self, Prediction, Schedule};
 use flowmimic_model::fm::{self, Solver, TimeDistribution};
 use flowmimic_model::meanflow::{self, Consistency};
-use flowmimic_model::{Gradient, Guidance, Network, TrainingBatch};
+use flowmimic_model::{Gradient, Guidance, Network, TrainingBatch, path};
 use flowmimic_nn::{Adam, Mlp};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -310,7 +310,7 @@ fn meanflow_one_step_comes_far_closer_to_the_mixture_than_fm_one_step() {
     );
 }
 
-/// Flow Matching and MeanFlow with a network that predicts the clean sample (`fm::CleanSample`,
+/// Flow Matching and MeanFlow with a network that predicts the clean sample (`path::CleanSample`,
 /// read as a velocity): both still learn the mixture. In two dimensions, where the network is far
 /// wider than the data, predicting the clean sample buys nothing (it exists for the trajectory
 /// model, whose 234-wide tokens outnumber its 128 channels); measured here: FM 2.92 / 1.93 / 0.59
@@ -320,12 +320,12 @@ fn meanflow_one_step_comes_far_closer_to_the_mixture_than_fm_one_step() {
 fn clean_sample_prediction_learns_the_mixture_for_fm_and_meanflow() {
     let fm_v = train(|x1, rng| fm::training_batch(x1, DIM, TimeDistribution::Uniform, rng), 7);
     let fm_x =
-        train(|x1, rng| fm::clean_sample_target(fm::training_batch(x1, DIM, TimeDistribution::Uniform, rng), DIM), 7);
+        train(|x1, rng| path::clean_sample_target(fm::training_batch(x1, DIM, TimeDistribution::Uniform, rng), DIM), 7);
     let mf_x = train_with(
         |net, x1, rng| {
             let batch =
-                meanflow::training_batch(&fm::CleanSample(net), &[], x1, DIM, (0.5, Consistency::Derivative), rng);
-            fm::clean_sample_target(batch, DIM)
+                meanflow::training_batch(&path::CleanSample(net), &[], x1, DIM, (0.5, Consistency::Derivative), rng);
+            path::clean_sample_target(batch, DIM)
         },
         2,
         7,
@@ -341,8 +341,8 @@ fn clean_sample_prediction_learns_the_mixture_for_fm_and_meanflow() {
     let mf_error = |net: &dyn Network, nfe| sample_error(&meanflow::sample(net, &[], x0(), n, nfe, None));
     // Errors at NFE 1, 2, 20 of FM and MeanFlow, each predicting the velocity or the clean sample.
     let errors = [1, 2, 20].map(|nfe| {
-        let (fv, fx) = (fm_error(&fm_v, nfe), fm_error(&fm::CleanSample(&fm_x), nfe));
-        let (mv, mx) = (mf_error(&mf_v, nfe), mf_error(&fm::CleanSample(&mf_x), nfe));
+        let (fv, fx) = (fm_error(&fm_v, nfe), fm_error(&path::CleanSample(&fm_x), nfe));
+        let (mv, mx) = (mf_error(&mf_v, nfe), mf_error(&path::CleanSample(&mf_x), nfe));
         eprintln!(
             "NFE {nfe}: FM velocity {fv:.3}, clean sample {fx:.3}; MeanFlow velocity {mv:.3}, clean sample {mx:.3}"
         );
@@ -351,7 +351,7 @@ fn clean_sample_prediction_learns_the_mixture_for_fm_and_meanflow() {
     let (fv1, fx20, mx1) = (errors[0][0], errors[2][1], errors[0][3]);
     // Its 20 steps over-disperse (x variance 5.16 against 4.09: near the data end a small error
     // of the clean sample is a large one of the velocity), but stay on the modes.
-    let [mx, _, my, _] = moments(&fm::sample(&fm::CleanSample(&fm_x), &[], x0(), n, 20, Solver::Euler, None));
+    let [mx, _, my, _] = moments(&fm::sample(&path::CleanSample(&fm_x), &[], x0(), n, 20, Solver::Euler, None));
     assert!(mx.abs() < 0.2 && my.abs() < 0.1, "FM clean sample: means ({mx}, {my})");
     assert!(fx20 < 0.8, "FM clean-sample error at NFE 20: {fx20}");
     // One MeanFlow jump splits the samples between the modes, which FM's one step cannot.

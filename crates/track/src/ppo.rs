@@ -1,7 +1,8 @@
 //! PPO as rsl_rl (BeyondMimic's trainer) runs it: Gaussian policy with a learned
 //! state-independent log-std, clipped surrogate, clipped value loss, entropy bonus, GAE,
 //! advantage normalisation, global gradient-norm clipping and an adaptive-KL learning rate.
-//! Gradients of the losses with respect to the network outputs are written out analytically.
+//! Gradients of the losses with respect to the network outputs are written out analytically
+//! ([`minibatch_loss`], checked against finite differences). Its settings are [`TrackConfig`]'s.
 
 use crate::TrackConfig;
 use flowmimic_nn::{Adam, Mlp};
@@ -11,13 +12,13 @@ use rand_distr::{Distribution, StandardNormal};
 
 /// Running mean and variance of observations (merged batch by batch).
 #[derive(Clone, Debug)]
-pub struct Normalizer {
+pub struct Normaliser {
     pub mean: Vec<f64>,
     pub var: Vec<f64>,
     pub count: f64,
 }
 
-impl Normalizer {
+impl Normaliser {
     pub fn new(dim: usize) -> Self {
         Self { mean: vec![0.0; dim], var: vec![1.0; dim], count: 1e-4 }
     }
@@ -56,7 +57,7 @@ pub struct Policy {
     pub actor: Mlp,
     pub critic: Mlp,
     pub log_std: Vec<f32>,
-    pub normalizer: Normalizer,
+    pub normaliser: Normaliser,
 }
 
 impl Policy {
@@ -66,7 +67,7 @@ impl Policy {
             actor: Mlp::new(&sizes(act), 0.01, rng),
             critic: Mlp::new(&sizes(1), 1.0, rng),
             log_std: vec![cfg.init_log_std as f32; act],
-            normalizer: Normalizer::new(obs),
+            normaliser: Normaliser::new(obs),
         }
     }
 
@@ -89,7 +90,7 @@ impl Policy {
     /// Normalised copies of raw observations.
     pub fn normalise(&self, raw: &[f32]) -> Vec<f32> {
         let mut x = raw.to_vec();
-        self.normalizer.apply(&mut x);
+        self.normaliser.apply(&mut x);
         x
     }
 
@@ -114,8 +115,9 @@ fn inverse_std(log_std: &[f32]) -> Vec<f32> {
     log_std.iter().map(|s| (-s).exp()).collect()
 }
 
-/// One rollout of `steps x envs` transitions (row-major: step, then env).
-pub struct Rollout {
+/// The transitions of one PPO iteration, `steps x envs` (row-major: step, then env): what the
+/// update learns from (not a rollout file, `flowmimic_control::Rollout`).
+pub struct RolloutBuffer {
     pub envs: usize,
     pub obs: Vec<f32>,
     pub actions: Vec<f32>,
@@ -162,7 +164,7 @@ pub fn sample(policy: &Policy, obs: &[f32], n: usize, rng: &mut impl Rng) -> Sam
 }
 
 /// GAE advantages and returns.
-pub fn advantages(r: &Rollout, gamma: f32, lambda: f32) -> (Vec<f32>, Vec<f32>) {
+pub fn advantages(r: &RolloutBuffer, gamma: f32, lambda: f32) -> (Vec<f32>, Vec<f32>) {
     let e = r.envs;
     let steps = r.rewards.len() / e;
     let mut adv = vec![0.0; r.rewards.len()];
@@ -198,11 +200,80 @@ pub struct Optimiser {
     pub lr: f32,
 }
 
+/// One minibatch at the networks' outputs: the actor's means and the critic's values (one row
+/// per sample), and what was recorded when acting.
+pub struct Minibatch<'a> {
+    pub means: &'a [f32],
+    pub values: &'a [f32],
+    pub actions: &'a [f32],
+    pub old_log_probs: &'a [f32],
+    pub advantages: &'a [f32],
+    pub old_values: &'a [f32],
+    pub returns: &'a [f32],
+}
+
+/// PPO's minibatch loss, `surrogate + value_coef * value_loss - entropy * H`, with its terms
+/// and its gradient with respect to the means, the values and the log-std: what the update
+/// backpropagates through the networks.
+pub struct MinibatchLoss {
+    /// The clipped surrogate (to minimise) and the clipped value loss, means over the batch.
+    pub surrogate: f32,
+    pub value_loss: f32,
+    /// The share of samples whose ratio the clip held.
+    pub clipped: f32,
+    pub g_mean: Vec<f32>,
+    pub g_value: Vec<f32>,
+    pub g_log_std: Vec<f32>,
+}
+
+/// The loss of one minibatch and its gradients, written out (as rsl_rl computes them).
+pub fn minibatch_loss(b: &Minibatch, log_std: &[f32], cfg: &TrackConfig) -> MinibatchLoss {
+    let (act, mb) = (log_std.len(), b.values.len());
+    let (clip, eps_v) = (cfg.clip as f32, cfg.clip as f32);
+    let mut g_mean = vec![0.0f32; mb * act];
+    let mut g_value = vec![0.0f32; mb];
+    let mut g_log_std = vec![0.0f32; act];
+    let (mut surr, mut vloss, mut clipped) = (0.0, 0.0, 0.0);
+    let inv = 1.0 / mb as f32;
+    let inv_std = inverse_std(log_std);
+    for row in 0..mb {
+        let m = &b.means[row * act..(row + 1) * act];
+        let u = &b.actions[row * act..(row + 1) * act];
+        let ratio = (log_prob(u, m, log_std, &inv_std) - b.old_log_probs[row]).exp();
+        let a = b.advantages[row];
+        let unclipped = ratio * a;
+        let clipped_obj = ratio.clamp(1.0 - clip, 1.0 + clip) * a;
+        surr += -unclipped.min(clipped_obj) * inv;
+        // d(-min)/d logp = -ratio * a where the unclipped term is the minimum.
+        let active = unclipped <= clipped_obj;
+        clipped += if active { 0.0 } else { inv };
+        let g_logp = if active { -ratio * a * inv } else { 0.0 };
+        for j in 0..act {
+            let z = (u[j] - m[j]) * inv_std[j];
+            g_mean[row * act + j] = g_logp * z * inv_std[j];
+            g_log_std[j] += g_logp * (z * z - 1.0);
+        }
+        // Clipped value loss (coefficient cfg.value_coef), as rsl_rl.
+        let v = b.values[row];
+        let (v_old, ret) = (b.old_values[row], b.returns[row]);
+        let v_clipped = v_old + (v - v_old).clamp(-eps_v, eps_v);
+        let (l1, l2) = ((v - ret).powi(2), (v_clipped - ret).powi(2));
+        vloss += l1.max(l2) * inv;
+        let inside = (v - v_old).abs() <= eps_v;
+        g_value[row] = cfg.value_coef as f32 * if l1 >= l2 || inside { 2.0 * (v - ret) } else { 0.0 } * inv;
+    }
+    // Entropy bonus: d(-c H)/d log_std = -c per dimension.
+    for g in &mut g_log_std {
+        *g -= cfg.entropy as f32;
+    }
+    MinibatchLoss { surrogate: surr, value_loss: vloss, clipped, g_mean, g_value, g_log_std }
+}
+
 /// The PPO update over one rollout.
 pub fn update(
     policy: &mut Policy,
     opt: &mut Optimiser,
-    r: &Rollout,
+    r: &RolloutBuffer,
     cfg: &TrackConfig,
     rng: &mut impl Rng,
 ) -> UpdateStats {
@@ -215,7 +286,6 @@ pub fn update(
     let std = (adv.iter().map(|a| (a - mean).powi(2)).sum::<f32>() / adv.len() as f32).sqrt() + 1e-8;
     let adv: Vec<f32> = adv.iter().map(|a| (a - mean) / std).collect();
     let mb = n / cfg.minibatches;
-    let (clip, eps_v) = (cfg.clip as f32, cfg.clip as f32);
     let mut stats = UpdateStats::default();
     let mut count = 0.0;
     let mut order: Vec<usize> = (0..n).collect();
@@ -235,42 +305,21 @@ pub fn update(
             // and two whole networks in parallel waste less than splitting each product.
             let (actor_tape, critic_tape) =
                 rayon::join(|| policy.actor.forward(&obs, mb), || policy.critic.forward(&obs, mb));
-            let mut g_mean = vec![0.0f32; mb * act];
-            let mut g_value = vec![0.0f32; mb];
-            let mut g_log_std = vec![0.0f32; act];
-            let (mut surr, mut vloss, mut kl, mut clipped) = (0.0, 0.0, 0.0, 0.0);
-            let inv = 1.0 / mb as f32;
-            let inv_std = inverse_std(&policy.log_std);
-            for (row, &k) in chunk.iter().enumerate() {
-                let m = &actor_tape.output[row * act..(row + 1) * act];
-                let u = &actions[row * act..(row + 1) * act];
-                let ratio = (log_prob(u, m, &policy.log_std, &inv_std) - r.log_probs[k]).exp();
-                let a = adv[k];
-                let unclipped = ratio * a;
-                let clipped_obj = ratio.clamp(1.0 - clip, 1.0 + clip) * a;
-                surr += -unclipped.min(clipped_obj) * inv;
-                // d(-min)/d logp = -ratio * a where the unclipped term is the minimum.
-                let active = unclipped <= clipped_obj;
-                clipped += if active { 0.0 } else { inv };
-                let g_logp = if active { -ratio * a * inv } else { 0.0 };
-                for j in 0..act {
-                    let z = (u[j] - m[j]) * inv_std[j];
-                    g_mean[row * act + j] = g_logp * z * inv_std[j];
-                    g_log_std[j] += g_logp * (z * z - 1.0);
-                }
-                // Clipped value loss (coefficient cfg.value_coef), as rsl_rl.
-                let v = critic_tape.output[row];
-                let (v_old, ret) = (r.values[k], returns[k]);
-                let v_clipped = v_old + (v - v_old).clamp(-eps_v, eps_v);
-                let (l1, l2) = ((v - ret).powi(2), (v_clipped - ret).powi(2));
-                vloss += l1.max(l2) * inv;
-                let inside = (v - v_old).abs() <= eps_v;
-                g_value[row] = cfg.value_coef as f32 * if l1 >= l2 || inside { 2.0 * (v - ret) } else { 0.0 } * inv;
-            }
-            // Entropy bonus: d(-c H)/d log_std = -c per dimension.
-            for g in &mut g_log_std {
-                *g -= cfg.entropy as f32;
-            }
+            let loss = minibatch_loss(
+                &Minibatch {
+                    means: &actor_tape.output,
+                    values: &critic_tape.output,
+                    actions: &actions,
+                    old_log_probs: &gather(&r.log_probs, 1),
+                    advantages: &gather(&adv, 1),
+                    old_values: &gather(&r.values, 1),
+                    returns: &gather(&returns, 1),
+                },
+                &policy.log_std,
+                cfg,
+            );
+            let MinibatchLoss { surrogate: surr, value_loss: vloss, clipped, g_mean, g_value, g_log_std } = loss;
+            let (mut kl, inv) = (0.0, 1.0 / mb as f32);
             let entropy: f32 = policy.log_std.iter().map(|s| s + 1.418_938_5).sum();
             let mut grads = vec![0.0; policy.num_params()];
             let (na, nc) = (policy.actor.num_params(), policy.critic.num_params());
@@ -338,9 +387,87 @@ mod tests {
     use rand::SeedableRng;
 
     #[test]
+    fn the_minibatch_loss_gradients_match_finite_differences() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(5);
+        let (mb, act) = (8, 3);
+        let mut normal = |n: usize, scale: f32| -> Vec<f32> {
+            (0..n)
+                .map(|_| {
+                    let z: f32 = StandardNormal.sample(&mut rng);
+                    scale * z
+                })
+                .collect()
+        };
+        let (means, values, actions) = (normal(mb * act, 0.5), normal(mb, 1.0), normal(mb * act, 0.5));
+        let log_std = vec![-0.5, -0.3, -0.7];
+        let inv_std = inverse_std(&log_std);
+        // Old log-probabilities near the current ones: ratios around 1, some beyond the clip.
+        let old_log_probs: Vec<f32> = (0..mb)
+            .map(|i| {
+                log_prob(&actions[i * act..][..act], &means[i * act..][..act], &log_std, &inv_std)
+                    + 0.15 * normal(1, 1.0)[0]
+            })
+            .collect();
+        let (advantages, old_values, returns) = (normal(mb, 1.0), normal(mb, 1.0), normal(mb, 1.0));
+        let cfg = TrackConfig { entropy: 0.01, value_coef: 0.7, ..TrackConfig::default() };
+        let total = |means: &[f32], values: &[f32], log_std: &[f32]| -> f64 {
+            let b = Minibatch {
+                means,
+                values,
+                actions: &actions,
+                old_log_probs: &old_log_probs,
+                advantages: &advantages,
+                old_values: &old_values,
+                returns: &returns,
+            };
+            let l = minibatch_loss(&b, log_std, &cfg);
+            let entropy: f32 = log_std.iter().map(|s| s + 1.418_938_5).sum();
+            f64::from(l.surrogate) + cfg.value_coef * f64::from(l.value_loss) - cfg.entropy * f64::from(entropy)
+        };
+        let b = Minibatch {
+            means: &means,
+            values: &values,
+            actions: &actions,
+            old_log_probs: &old_log_probs,
+            advantages: &advantages,
+            old_values: &old_values,
+            returns: &returns,
+        };
+        let loss = minibatch_loss(&b, &log_std, &cfg);
+        assert!(loss.clipped > 0.0 && loss.clipped < 1.0, "some ratios clipped, some not: {}", loss.clipped);
+        // Central differences, where the two one-sided ones agree (away from a clip's kink).
+        let eps = 1e-3;
+        let mut checked = 0;
+        let mut check = |what: &str, analytic: &[f32], at: &dyn Fn(usize, f32) -> f64| {
+            for (i, &g) in analytic.iter().enumerate() {
+                let (up, here, down) = (at(i, eps), at(i, 0.0), at(i, -eps));
+                let (right, left) = ((up - here) / f64::from(eps), (here - down) / f64::from(eps));
+                if (right - left).abs() > 0.05 * right.abs().max(left.abs()) + 1e-3 {
+                    continue;
+                }
+                let fd = (up - down) / f64::from(2.0 * eps);
+                assert!(
+                    (fd - f64::from(g)).abs() < 2e-3 + 0.02 * fd.abs(),
+                    "{what}[{i}]: analytic {g}, finite differences {fd}"
+                );
+                checked += 1;
+            }
+        };
+        let moved = |v: &[f32], i: usize, d: f32| -> Vec<f32> {
+            let mut v = v.to_vec();
+            v[i] += d;
+            v
+        };
+        check("mean", &loss.g_mean, &|i, d| total(&moved(&means, i, d), &values, &log_std));
+        check("value", &loss.g_value, &|i, d| total(&means, &moved(&values, i, d), &log_std));
+        check("log_std", &loss.g_log_std, &|i, d| total(&means, &values, &moved(&log_std, i, d)));
+        assert!(checked >= 25, "only {checked} entries away from a kink");
+    }
+
+    #[test]
     fn gae_matches_hand_computation() {
         // One env, three steps, done after the second.
-        let r = Rollout {
+        let r = RolloutBuffer {
             envs: 1,
             obs: vec![],
             actions: vec![],
@@ -373,7 +500,7 @@ mod tests {
         let n = 64;
         let obs: Vec<f32> = (0..n * 3).map(|i| (i % 7) as f32 * 0.1).collect();
         let s = sample(&policy, &obs, n, &mut rng);
-        let r = Rollout {
+        let r = RolloutBuffer {
             envs: n,
             obs,
             actions: s.actions,
@@ -392,8 +519,8 @@ mod tests {
     }
 
     #[test]
-    fn normalizer_tracks_mean_and_variance() {
-        let mut n = Normalizer::new(2);
+    fn normaliser_tracks_mean_and_variance() {
+        let mut n = Normaliser::new(2);
         let rows: Vec<f32> = (0..1000).flat_map(|i| [i as f32, 5.0]).collect();
         // Two batches of 400 and 600 rows merge into the statistics of all 1000.
         n.update(&rows[..800]);

@@ -11,13 +11,67 @@ use flowmimic_motion::Clip;
 use flowmimic_sim::skeleton::{NUM_BODIES, body};
 use flowmimic_sim::{BodyKinematics, Env, Humanoid, NUM_DOFS, SimError};
 use rand::Rng;
+use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
 /// Observation width: proprioception (148) and the reference one step ahead (147).
 pub const OBS_DIM: usize = 148 + 147;
 
-/// Per-term rewards of one step, for logging.
-#[derive(Clone, Copy, Debug, Default)]
+/// One term of the tracking reward: `weight * exp(-err^2 / sigma^2)`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Kernel {
+    pub weight: f64,
+    /// The error at which the term falls to 1/e of its weight, in the term's unit.
+    pub sigma: f64,
+}
+
+/// The tracking reward's weights and widths (BeyondMimic's): `[track.reward]` in a config, one
+/// table per term.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RewardConfig {
+    /// Pelvis position (m) and orientation (rad) in the world.
+    pub anchor_pos: Kernel,
+    pub anchor_rot: Kernel,
+    /// Root-relative body positions (m) and orientations (rad), mean squared over the bodies.
+    pub body_pos: Kernel,
+    pub body_rot: Kernel,
+    /// Body linear (m/s) and angular (rad/s) velocities, mean squared over the bodies.
+    pub body_lin_vel: Kernel,
+    pub body_ang_vel: Kernel,
+    /// The pelvis's horizontal velocity (m/s): without it a humanoid that steps in place where
+    /// the reference walks backward loses almost nothing (the body terms are root-relative, the
+    /// anchor term saturates once the root is 0.6 m off). Its width: a 0.3 m/s error (stepping
+    /// in place where the reference walks backward at 0.4 m/s) halves it, a gait's own 0.1 m/s
+    /// ripple costs 6%.
+    pub root_vel: Kernel,
+    /// Penalty per rad^2 of change of the residual PD target between steps.
+    pub action_rate: f64,
+    /// Penalty per rad that hinges reach into the outer 5% of their ranges.
+    pub joint_limit: f64,
+}
+
+impl Default for RewardConfig {
+    fn default() -> Self {
+        let kernel = |weight, sigma| Kernel { weight, sigma };
+        Self {
+            anchor_pos: kernel(0.5, 0.3),
+            anchor_rot: kernel(0.5, 0.4),
+            body_pos: kernel(1.0, 0.3),
+            body_rot: kernel(1.0, 0.4),
+            body_lin_vel: kernel(1.0, 1.0),
+            body_ang_vel: kernel(1.0, std::f64::consts::PI),
+            root_vel: kernel(1.0, 0.4),
+            action_rate: 0.1,
+            joint_limit: 10.0,
+        }
+    }
+}
+
+/// The terms of one step's reward: each kernel's value in [0, 1] before its weight, the
+/// penalties weighted (0 or below); and the tracking metric.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
 pub struct RewardTerms {
     pub anchor_pos: f32,
     pub anchor_rot: f32,
@@ -25,33 +79,109 @@ pub struct RewardTerms {
     pub body_rot: f32,
     pub body_lin_vel: f32,
     pub body_ang_vel: f32,
-    /// The pelvis's horizontal velocity against the reference's: without it a humanoid that
-    /// steps in place where the reference walks backward loses almost nothing (the body terms
-    /// are root-relative, the anchor term saturates once the root is 0.6 m off).
     pub root_vel: f32,
     pub action_rate: f32,
     pub joint_limit: f32,
-    /// Mean body position error, m (the tracking metric).
+    /// Mean body position error, m.
     pub body_pos_error: f32,
 }
 
 impl RewardTerms {
-    pub fn total(&self) -> f32 {
-        0.5 * self.anchor_pos
-            + 0.5 * self.anchor_rot
-            + self.body_pos
-            + self.body_rot
-            + self.body_lin_vel
-            + self.body_ang_vel
-            + self.root_vel
+    /// The terms by name, as log.csv's columns name them (`reward_<term>`).
+    pub fn named(&self) -> [(&'static str, f32); 9] {
+        [
+            ("anchor_pos", self.anchor_pos),
+            ("anchor_rot", self.anchor_rot),
+            ("body_pos", self.body_pos),
+            ("body_rot", self.body_rot),
+            ("body_lin_vel", self.body_lin_vel),
+            ("body_ang_vel", self.body_ang_vel),
+            ("root_vel", self.root_vel),
+            ("action_rate", self.action_rate),
+            ("joint_limit", self.joint_limit),
+        ]
+    }
+
+    /// The reward: the kernels at their weights plus the penalties.
+    pub fn total(&self, w: &RewardConfig) -> f32 {
+        w.anchor_pos.weight as f32 * self.anchor_pos
+            + w.anchor_rot.weight as f32 * self.anchor_rot
+            + w.body_pos.weight as f32 * self.body_pos
+            + w.body_rot.weight as f32 * self.body_rot
+            + w.body_lin_vel.weight as f32 * self.body_lin_vel
+            + w.body_ang_vel.weight as f32 * self.body_ang_vel
+            + w.root_vel.weight as f32 * self.root_vel
             + self.action_rate
             + self.joint_limit
     }
 }
 
-/// The root velocity reward's width, m/s: a 0.3 m/s error (stepping in place where the
-/// reference walks backward at 0.4 m/s) halves it, a gait's own 0.1 m/s ripple costs 6%.
-const ROOT_VEL_SIGMA: f64 = 0.4;
+/// `exp(-err2 / sigma^2)` of a squared error.
+fn kernel(err2: f64, k: Kernel) -> f32 {
+    (-err2 / (k.sigma * k.sigma)).exp() as f32
+}
+
+/// The mean over the bodies of `f(body)`.
+fn body_mean(f: impl Fn(usize) -> f64) -> f64 {
+    (0..NUM_BODIES).map(|b| f(b) / NUM_BODIES as f64).sum()
+}
+
+/// Squared pelvis position error in the world, m^2.
+fn anchor_pos(k: &BodyKinematics, r: &BodyKinematics) -> f64 {
+    (k.pos[body::PELVIS] - r.pos[body::PELVIS]).length_squared()
+}
+
+/// Squared pelvis orientation error, rad^2.
+fn anchor_rot(k: &BodyKinematics, r: &BodyKinematics) -> f64 {
+    angle(k.rot[body::PELVIS], r.rot[body::PELVIS]).powi(2)
+}
+
+/// Mean squared body position error in each pose's character frame, m^2.
+fn body_pos(k: &BodyKinematics, r: &BodyKinematics, own: &CharFrame, theirs: &CharFrame) -> f64 {
+    body_mean(|b| (own.point(k.pos[b]) - theirs.point(r.pos[b])).length_squared())
+}
+
+/// Mean body position error (not squared), m: the tracking metric.
+fn body_pos_error(k: &BodyKinematics, r: &BodyKinematics, own: &CharFrame, theirs: &CharFrame) -> f64 {
+    body_mean(|b| (own.point(k.pos[b]) - theirs.point(r.pos[b])).length())
+}
+
+/// Mean squared body orientation error in each pose's character frame, rad^2.
+fn body_rot(k: &BodyKinematics, r: &BodyKinematics, own: &CharFrame, theirs: &CharFrame) -> f64 {
+    body_mean(|b| angle(own.rotation(k.rot[b]), theirs.rotation(r.rot[b])).powi(2))
+}
+
+/// Mean squared body linear velocity error, (m/s)^2.
+fn body_lin_vel(k: &BodyKinematics, r: &BodyKinematics) -> f64 {
+    body_mean(|b| (k.lin_vel[b] - r.lin_vel[b]).length_squared())
+}
+
+/// Mean squared body angular velocity error, (rad/s)^2.
+fn body_ang_vel(k: &BodyKinematics, r: &BodyKinematics) -> f64 {
+    body_mean(|b| (k.ang_vel[b] - r.ang_vel[b]).length_squared())
+}
+
+/// Squared horizontal pelvis velocity error, (m/s)^2.
+fn root_vel(k: &BodyKinematics, r: &BodyKinematics) -> f64 {
+    (k.lin_vel[body::PELVIS] - r.lin_vel[body::PELVIS]).truncate().length_squared()
+}
+
+/// Squared change of the residual PD targets since the last step, rad^2.
+fn action_rate(u: &[f32], prev: &[f32], action_scale: f64) -> f64 {
+    u.iter().zip(prev).map(|(a, b)| (action_scale * f64::from(a - b)).powi(2)).sum()
+}
+
+/// How far the hinges reach into the outer 5% of their ranges, rad.
+fn joint_limit(hinges: &[f64], lower: &[f64], upper: &[f64]) -> f64 {
+    hinges
+        .iter()
+        .zip(lower.iter().zip(upper))
+        .map(|(q, (&lo, &hi))| {
+            let margin = 0.05 * (hi - lo);
+            (lo + margin - q).max(0.0) + (q - hi + margin).max(0.0)
+        })
+        .sum()
+}
 
 /// Why an episode ended.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -240,43 +370,65 @@ impl Tracker {
     fn rewards(&self, k: &BodyKinematics, reference: &Reference, u: &[f32], cfg: &TrackConfig) -> RewardTerms {
         let r = &reference.clip.bodies[self.frame];
         let (own, theirs) = (k.frame(), reference.frames_ahead[self.frame]);
-        let p = body::PELVIS;
-        let g = |err2: f64, sigma: f64| (-err2 / (sigma * sigma)).exp() as f32;
-        let nb = NUM_BODIES as f64;
-        let (mut pos, mut rot, mut lin, mut ang, mut pos_err) = (0.0, 0.0, 0.0, 0.0, 0.0);
-        for b in 0..NUM_BODIES {
-            let e = own.point(k.pos[b]) - theirs.point(r.pos[b]);
-            pos += e.length_squared() / nb;
-            pos_err += e.length() / nb;
-            rot += angle(own.rotation(k.rot[b]), theirs.rotation(r.rot[b])).powi(2) / nb;
-            lin += (k.lin_vel[b] - r.lin_vel[b]).length_squared() / nb;
-            ang += (k.ang_vel[b] - r.ang_vel[b]).length_squared() / nb;
-        }
-        let rate: f64 =
-            u.iter().zip(&self.prev_residual).map(|(a, b)| (cfg.action_scale * f64::from(a - b)).powi(2)).sum();
-        let map = self.env.humanoid().actions();
-        let limit: f64 = self
-            .env
-            .hinge_angles()
-            .iter()
-            .enumerate()
-            .map(|(i, q)| {
-                let (lo, hi) = (map.lower[i], map.upper[i]);
-                let margin = 0.05 * (hi - lo);
-                (lo + margin - q).max(0.0) + (q - hi + margin).max(0.0)
-            })
-            .sum();
+        let (w, map) = (&cfg.reward, self.env.humanoid().actions());
         RewardTerms {
-            anchor_pos: g((k.pos[p] - r.pos[p]).length_squared(), 0.3),
-            anchor_rot: g(angle(k.rot[p], r.rot[p]).powi(2), 0.4),
-            body_pos: g(pos, 0.3),
-            body_rot: g(rot, 0.4),
-            body_lin_vel: g(lin, 1.0),
-            body_ang_vel: g(ang, std::f64::consts::PI),
-            root_vel: g((k.lin_vel[p] - r.lin_vel[p]).truncate().length_squared(), ROOT_VEL_SIGMA),
-            action_rate: (-0.1 * rate) as f32,
-            joint_limit: (-10.0 * limit) as f32,
-            body_pos_error: pos_err as f32,
+            anchor_pos: kernel(anchor_pos(k, r), w.anchor_pos),
+            anchor_rot: kernel(anchor_rot(k, r), w.anchor_rot),
+            body_pos: kernel(body_pos(k, r, &own, &theirs), w.body_pos),
+            body_rot: kernel(body_rot(k, r, &own, &theirs), w.body_rot),
+            body_lin_vel: kernel(body_lin_vel(k, r), w.body_lin_vel),
+            body_ang_vel: kernel(body_ang_vel(k, r), w.body_ang_vel),
+            root_vel: kernel(root_vel(k, r), w.root_vel),
+            action_rate: (-w.action_rate * action_rate(u, &self.prev_residual, cfg.action_scale)) as f32,
+            joint_limit: (-w.joint_limit * joint_limit(self.env.hinge_angles(), &map.lower, &map.upper)) as f32,
+            body_pos_error: body_pos_error(k, r, &own, &theirs) as f32,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_reward_term_is_its_weight_at_no_error_and_falls_as_its_kernel_says() {
+        let w = RewardConfig::default();
+        let k = Kernel { weight: 1.0, sigma: 0.3 };
+        assert_eq!(kernel(0.0, k), 1.0);
+        assert!((kernel(0.09, k) - (-1.0f32).exp()).abs() < 1e-6, "an error of sigma leaves 1/e");
+        // A perfect step scores the kernels' weights, no penalty.
+        let perfect = RewardTerms {
+            anchor_pos: 1.0,
+            anchor_rot: 1.0,
+            body_pos: 1.0,
+            body_rot: 1.0,
+            body_lin_vel: 1.0,
+            body_ang_vel: 1.0,
+            root_vel: 1.0,
+            ..RewardTerms::default()
+        };
+        assert_eq!(perfect.total(&w), 6.0);
+        // The penalties: a residual that moved 0.1 per hinge on 2 hinges at action_scale 0.15
+        // (0.015 rad each), and a hinge 0.01 rad into its margin.
+        let rate = action_rate(&[0.1, 0.1, 0.0], &[0.0, 0.0, 0.0], 0.15);
+        assert!((rate - 2.0 * 0.015f64.powi(2)).abs() < 1e-9, "{rate}");
+        let (lower, upper) = ([-1.0, -1.0], [1.0, 1.0]);
+        assert_eq!(joint_limit(&[0.0, 0.5], &lower, &upper), 0.0, "inside the ranges' inner 90%");
+        assert!((joint_limit(&[0.91, -0.5], &lower, &upper) - 0.01).abs() < 1e-12);
+        // A pelvis 0.3 m off, turned 0.4 rad: each anchor term at 1/e.
+        let mut a = BodyKinematics {
+            pos: [DVec3::ZERO; NUM_BODIES],
+            rot: [DQuat::IDENTITY; NUM_BODIES],
+            lin_vel: [DVec3::ZERO; NUM_BODIES],
+            ang_vel: [DVec3::ZERO; NUM_BODIES],
+        };
+        let reference = a.clone();
+        a.pos[body::PELVIS].x = 0.3;
+        a.rot[body::PELVIS] = DQuat::from_rotation_z(0.4);
+        assert!((kernel(anchor_pos(&a, &reference), w.anchor_pos) - (-1.0f32).exp()).abs() < 1e-6);
+        assert!((kernel(anchor_rot(&a, &reference), w.anchor_rot) - (-1.0f32).exp()).abs() < 1e-6);
+        // The root's horizontal velocity only.
+        a.lin_vel[body::PELVIS] = DVec3::new(0.4, 0.0, 0.3);
+        assert!((kernel(root_vel(&a, &reference), w.root_vel) - (-1.0f32).exp()).abs() < 1e-6);
     }
 }

@@ -2,8 +2,8 @@
 //! and evaluation of tracking quality.
 
 use crate::TrackError;
-use crate::ppo::{self, Normalizer, Optimiser, Policy, Rollout, UpdateStats};
-use crate::task::{Ending, OBS_DIM, Reference, RewardTerms, Tracker};
+use crate::ppo::{self, Normaliser, Optimiser, Policy, RolloutBuffer, UpdateStats};
+use crate::task::{Ending, OBS_DIM, Reference, RewardConfig, RewardTerms, Tracker};
 use flowmimic_io::le;
 use flowmimic_motion::Clip;
 use flowmimic_nn::Adam;
@@ -30,15 +30,24 @@ pub struct TrackConfig {
     pub iterations: usize,
     /// Hidden layer widths of actor and critic (ELU).
     pub hidden: Vec<usize>,
+    /// Adam's initial learning rate; the adaptive-KL rule then moves it within 1e-5 to 1e-2.
     pub learning_rate: f64,
+    /// The KL divergence (nats, summed over the action's dimensions) from the acting policy that
+    /// the learning rate aims at: above twice it the rate falls by 1.5, below half it rises.
     pub kl_target: f64,
+    /// PPO's clip on the probability ratio, and on the value's change (in return units).
     pub clip: f64,
+    /// Entropy bonus per nat of the policy's entropy.
     pub entropy: f64,
+    /// The value loss's weight beside the surrogate.
     pub value_coef: f64,
+    /// Discount per control step, and GAE's lambda.
     pub gamma: f64,
     pub lambda: f64,
+    /// Passes over each iteration's steps, and minibatches per pass.
     pub epochs: usize,
     pub minibatches: usize,
+    /// Largest norm of the whole gradient; larger ones are scaled down to it.
     pub max_grad_norm: f64,
     /// Initial log standard deviation of the policy (in units of `action_scale`).
     pub init_log_std: f64,
@@ -52,9 +61,11 @@ pub struct TrackConfig {
     pub push_interval: [f64; 2],
     /// Termination: pelvis or end-effector height error, m.
     pub max_height_error: f64,
-    /// Termination: difference of gravity's z in the pelvis frame.
+    /// Termination: difference of gravity's z in the pelvis frame (-1 to 1: 0.8 is about 53
+    /// degrees of tilt off the reference's).
     pub max_tilt_error: f64,
-    /// Adaptive start sampling: bin length (s), smoothing factor, uniform share.
+    /// Adaptive start sampling: bin length (s), the smoothing of each bin's failure count per
+    /// iteration (0-1), and the share of starts drawn evenly (0-1).
     pub bin_seconds: f64,
     pub bin_smoothing: f64,
     pub uniform_share: f64,
@@ -71,9 +82,12 @@ pub struct TrackConfig {
     /// follows seconds of drift is practised from a fresh start there, without the drift;
     /// episodes from the first frame carry it, as `track eval` does.
     pub first_frame_share: f64,
+    /// Seed of the policy's initial weights, the episodes' draws and the action noise.
     pub seed: u64,
     /// Iterations between checkpoints.
     pub checkpoint_every: usize,
+    /// The reward's weights and widths (`[track.reward]`).
+    pub reward: RewardConfig,
 }
 
 impl Default for TrackConfig {
@@ -110,6 +124,7 @@ impl Default for TrackConfig {
             first_frame_share: 0.0,
             seed: 0,
             checkpoint_every: 25,
+            reward: RewardConfig::default(),
         }
     }
 }
@@ -159,6 +174,14 @@ impl TrackConfig {
             && self.push_interval[1].is_finite())
         {
             return bad("push_interval must be [a, b] with 0 < a <= b");
+        }
+        let r = &self.reward;
+        let kernels = [r.anchor_pos, r.anchor_rot, r.body_pos, r.body_rot, r.body_lin_vel, r.body_ang_vel, r.root_vel];
+        let mut weights = kernels.iter().map(|k| k.weight).chain([r.action_rate, r.joint_limit]);
+        if kernels.iter().any(|k| !(k.sigma.is_finite() && k.sigma > 0.0))
+            || weights.any(|w| !(w.is_finite() && w >= 0.0))
+        {
+            return bad("reward: every sigma must be positive, every weight finite and not negative");
         }
         Ok(())
     }
@@ -226,6 +249,9 @@ pub struct IterationLog {
     pub iteration: usize,
     pub env_steps: u64,
     pub mean_reward: f32,
+    /// Each reward term's mean over the iteration's steps (a kernel before its weight, a
+    /// penalty with it).
+    pub rewards: RewardTerms,
     pub episodes: usize,
     pub failures: usize,
     /// Mean length of the episodes that ended this iteration, in control steps.
@@ -271,29 +297,43 @@ impl ClipLog {
 }
 
 impl IterationLog {
-    pub const CSV_HEADER: &str = "iteration,env_steps,mean_reward,episodes,failures,episode_length,body_pos_error,surrogate,value_loss,entropy,kl,clip_fraction,learning_rate,physics_seconds,network_seconds,update_seconds,steps_per_second";
+    /// log.csv's columns, named: the header and the rows come from this one list. The reward
+    /// terms come last, so that logs written before them keep their columns' places.
+    fn columns(&self) -> Vec<(String, String)> {
+        let mut columns: Vec<(String, String)> = [
+            ("iteration", self.iteration.to_string()),
+            ("env_steps", self.env_steps.to_string()),
+            ("mean_reward", format!("{:.4}", self.mean_reward)),
+            ("episodes", self.episodes.to_string()),
+            ("failures", self.failures.to_string()),
+            ("episode_length", format!("{:.1}", self.episode_length)),
+            ("body_pos_error", format!("{:.4}", self.body_pos_error)),
+            ("surrogate", format!("{:.5}", self.update.surrogate)),
+            ("value_loss", format!("{:.5}", self.update.value_loss)),
+            ("entropy", format!("{:.3}", self.update.entropy)),
+            ("kl", format!("{:.5}", self.update.kl)),
+            ("clip_fraction", format!("{:.3}", self.update.clip_fraction)),
+            ("learning_rate", format!("{:.2e}", self.update.learning_rate)),
+            ("physics_seconds", format!("{:.3}", self.physics_seconds)),
+            ("network_seconds", format!("{:.3}", self.network_seconds)),
+            ("update_seconds", format!("{:.3}", self.update_seconds)),
+            ("steps_per_second", format!("{:.0}", self.steps_per_second)),
+        ]
+        .into_iter()
+        .map(|(name, value)| (name.to_string(), value))
+        .collect();
+        columns.extend(self.rewards.named().map(|(name, value)| (format!("reward_{name}"), format!("{value:.4}"))));
+        columns
+    }
 
+    /// log.csv's header line.
+    pub fn csv_header() -> String {
+        Self::default().columns().into_iter().map(|(name, _)| name).collect::<Vec<_>>().join(",")
+    }
+
+    /// One row of log.csv.
     pub fn csv_row(&self) -> String {
-        format!(
-            "{},{},{:.4},{},{},{:.1},{:.4},{:.5},{:.5},{:.3},{:.5},{:.3},{:.2e},{:.3},{:.3},{:.3},{:.0}",
-            self.iteration,
-            self.env_steps,
-            self.mean_reward,
-            self.episodes,
-            self.failures,
-            self.episode_length,
-            self.body_pos_error,
-            self.update.surrogate,
-            self.update.value_loss,
-            self.update.entropy,
-            self.update.kl,
-            self.update.clip_fraction,
-            self.update.learning_rate,
-            self.physics_seconds,
-            self.network_seconds,
-            self.update_seconds,
-            self.steps_per_second
-        )
+        self.columns().into_iter().map(|(_, value)| value).collect::<Vec<_>>().join(",")
     }
 }
 
@@ -400,7 +440,7 @@ impl Trainer {
     pub fn iterate(&mut self) -> Result<IterationLog, TrackError> {
         let (e, horizon) = (self.cfg.envs, self.cfg.horizon);
         let gamma = self.cfg.gamma as f32;
-        let mut rollout = Rollout {
+        let mut rollout = RolloutBuffer {
             envs: e,
             obs: Vec::with_capacity(e * horizon * OBS_DIM),
             actions: Vec::with_capacity(e * horizon * NUM_DOFS),
@@ -419,12 +459,13 @@ impl Trainer {
         };
         let (mut physics, mut network) = (0.0f64, 0.0f64);
         let (mut reward_sum, mut error_sum, mut ended_lengths) = (0.0f64, 0.0f64, 0usize);
+        let mut term_sums = [0.0f64; 9];
         let mut raw = vec![0.0f32; e * OBS_DIM];
         self.observe_all(&mut raw);
         let started = Instant::now();
         for _ in 0..horizon {
             let t0 = Instant::now();
-            self.policy.normalizer.update(&raw);
+            self.policy.normaliser.update(&raw);
             let obs = self.policy.normalise(&raw);
             let ppo::Sampled { actions, means, log_probs, values } = ppo::sample(&self.policy, &obs, e, &mut self.rng);
             network += t0.elapsed().as_secs_f64();
@@ -439,7 +480,7 @@ impl Trainer {
                 .map(|(i, ((tracker, rng), u))| tracker.step(&refs[clips[i]], u, cfg, rng))
                 .collect();
             for (i, (terms, ending)) in results.iter().enumerate() {
-                let total = terms.total();
+                let total = terms.total(&self.cfg.reward);
                 if !total.is_finite() {
                     return Err(TrackError::NonFinite {
                         iteration: log.iteration,
@@ -447,6 +488,9 @@ impl Trainer {
                     });
                 }
                 reward_sum += f64::from(total);
+                for (sum, (_, term)) in term_sums.iter_mut().zip(terms.named()) {
+                    *sum += f64::from(term);
+                }
                 // Rewards are weighted by the step length, as Isaac Lab does: returns stay
                 // O(1-10), the scale rsl_rl's value clipping (0.2) is meant for.
                 let mut reward = total * REWARD_DT;
@@ -502,6 +546,29 @@ impl Trainer {
         let n = (e * horizon) as f64;
         log.env_steps = self.env_steps;
         log.mean_reward = (reward_sum / n) as f32;
+        let [
+            anchor_pos,
+            anchor_rot,
+            body_pos,
+            body_rot,
+            body_lin_vel,
+            body_ang_vel,
+            root_vel,
+            action_rate,
+            joint_limit,
+        ] = term_sums.map(|sum| (sum / n) as f32);
+        log.rewards = RewardTerms {
+            anchor_pos,
+            anchor_rot,
+            body_pos,
+            body_rot,
+            body_lin_vel,
+            body_ang_vel,
+            root_vel,
+            action_rate,
+            joint_limit,
+            body_pos_error: (error_sum / n) as f32,
+        };
         log.body_pos_error = (error_sum / n) as f32;
         for c in &mut log.clips {
             c.body_pos_error /= c.steps.max(1) as f32;
@@ -524,8 +591,8 @@ impl Trainer {
             ("actor", Dtype::F32, f32s(&p.actor.params())),
             ("critic", Dtype::F32, f32s(&p.critic.params())),
             ("log_std", Dtype::F32, f32s(&p.log_std)),
-            ("obs_mean", Dtype::F64, f64s(&p.normalizer.mean)),
-            ("obs_var", Dtype::F64, f64s(&p.normalizer.var)),
+            ("obs_mean", Dtype::F64, f64s(&p.normaliser.mean)),
+            ("obs_var", Dtype::F64, f64s(&p.normaliser.var)),
             ("adam_m", Dtype::F32, f32s(&self.opt.adam.m)),
             ("adam_v", Dtype::F32, f32s(&self.opt.adam.v)),
             (
@@ -552,7 +619,7 @@ impl Trainer {
             ("env_steps", self.env_steps.to_string()),
             ("learning_rate", self.opt.lr.to_string()),
             ("adam_t", self.opt.adam.t.to_string()),
-            ("obs_count", p.normalizer.count.to_string()),
+            ("obs_count", p.normaliser.count.to_string()),
         ]
         .into_iter()
         .map(|(k, v)| (k.to_string(), v))
@@ -763,21 +830,21 @@ impl Checkpoint {
         policy.actor.set_params(&self.f32s("actor", policy.actor.num_params())?);
         policy.critic.set_params(&self.f32s("critic", policy.critic.num_params())?);
         policy.log_std = self.f32s("log_std", NUM_DOFS)?;
-        let normalizer = Normalizer {
+        let normaliser = Normaliser {
             mean: self.f64s("obs_mean", OBS_DIM)?,
             var: self.f64s("obs_var", OBS_DIM)?,
             count: self.number("obs_count")?,
         };
-        let valid = normalizer.mean.iter().all(|m| m.is_finite())
-            && normalizer.var.iter().all(|v| v.is_finite() && *v >= 0.0)
-            && normalizer.count.is_finite()
-            && normalizer.count > 0.0;
+        let valid = normaliser.mean.iter().all(|m| m.is_finite())
+            && normaliser.var.iter().all(|v| v.is_finite() && *v >= 0.0)
+            && normaliser.count.is_finite()
+            && normaliser.count > 0.0;
         if !valid {
             return Err(
                 self.bad("observation statistics are not finite, or a variance or the count is negative".into())
             );
         }
-        policy.normalizer = normalizer;
+        policy.normaliser = normaliser;
         Ok(())
     }
 
