@@ -185,7 +185,7 @@ enum Command {
         /// Port on 127.0.0.1 (0: any free one).
         #[arg(long, default_value_t = 8000)]
         port: u16,
-        /// The settings at the start (the page changes them); the model's recommended joystick
+        /// The settings at the start (the page changes them); the model's recommended play
         /// settings where these are left out.
         #[command(flatten)]
         drive: run::DriveArgs,
@@ -288,7 +288,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::View { file, env, port } => viz::view(&Humanoid::new(config.sim)?, &file, env, port)?,
         Command::Play { model, port, drive, clip, record_dir } => {
             let model = paths::model_or_default(model);
-            let chosen = drive.choose(&run::recommended(&model, "joystick")?, "joystick")?;
+            let chosen = drive.choose(&run::recommended(&model, "play")?, "play")?;
             let control = ControlConfig { paced: true, ..chosen.control(drive.guidance.gradient, 0.0) };
             run::play(&Humanoid::new(config.sim)?, &model, port, control, clip.as_deref(), record_dir)?
         }

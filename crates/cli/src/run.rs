@@ -193,7 +193,7 @@ impl Chosen {
 }
 
 /// A model directory's recommended settings for a task (`walk`, `joystick`, `reach`,
-/// `waypoint`, `compose`).
+/// `waypoint`, `compose`, `play`).
 pub fn recommended(dir: &Path, task: &str) -> Result<Settings> {
     let r = Recommended::load(dir)?;
     Ok(match task {
@@ -201,6 +201,7 @@ pub fn recommended(dir: &Path, task: &str) -> Result<Settings> {
         "reach" => r.reach,
         "waypoint" => r.waypoint,
         "compose" => r.compose,
+        "play" => r.play,
         _ => r.walk,
     })
 }

@@ -224,7 +224,9 @@ fn live_play_steers_from_a_real_browser() {
         return;
     };
     let dir = common::workdir("play-browser");
-    let (_server, host) = start_play(&dir, GUIDANCE_MODEL, &["--inverse-dynamics", "0.2"]);
+    // No flag: the model's recommended play settings (a fixed w 30 with a fifth of inverse
+    // dynamics), as a user gets them.
+    let (_server, host) = start_play(&dir, GUIDANCE_MODEL, &[]);
     let mut chrome = Command::new(browser)
         .args(["--headless", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
         .args(["--remote-debugging-port=0", "--window-size=1000,700", "--no-first-run"])
@@ -248,7 +250,8 @@ fn live_play_steers_from_a_real_browser() {
     let mut page = Page { socket, id: 0 };
     assert!(page.wait_for("window.play !== undefined && play.frames > 30", 30.0), "no frames reached the page");
     assert!(page.eval("play.errors.length") == json!(0), "{}", page.eval("JSON.stringify(play.errors)"));
-    // The guidance model has inverse dynamics: the panel offers its share, at the one in force.
+    // The guidance model has inverse dynamics: the panel offers its share, at the one in force
+    // (the model's recommended 0.2).
     let shown = page.eval("[getComputedStyle($('idlabel')).display, $('id').value]");
     assert_eq!(shown, json!(["block", "0.2"]), "the inverse-dynamics slider");
 

@@ -46,6 +46,9 @@ pub struct Recommended {
     pub reach: Settings,
     pub waypoint: Settings,
     pub compose: Settings,
+    /// A person at the keys (`flowmimic play`): commands held for seconds, not the joystick
+    /// protocol's 3 s segments.
+    pub play: Settings,
 }
 
 impl Settings {

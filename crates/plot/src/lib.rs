@@ -14,10 +14,16 @@ use std::path::Path;
 
 const WIDTH: usize = 800;
 const HEIGHT: usize = 500;
-const LEFT: f64 = 80.0;
+const LEFT: f64 = 100.0;
 const RIGHT: f64 = 20.0;
-const TOP: f64 = 40.0;
-const BOTTOM: f64 = 60.0;
+const TOP: f64 = 48.0;
+const BOTTOM: f64 = 64.0;
+/// The PNG's text: the 8x8 font drawn at twice its size (16 px), legible at 800 x 500.
+const TEXT_SCALE: i64 = 2;
+const CHAR: f64 = 8.0 * TEXT_SCALE as f64;
+/// The legend's rows and its margin from the plot's edges, pixels.
+const LEGEND_ROW: f64 = 22.0;
+const LEGEND_MARGIN: f64 = 8.0;
 const PALETTE: [[u8; 3]; 6] =
     [[31, 119, 180], [214, 39, 40], [44, 160, 44], [255, 127, 14], [148, 103, 189], [127, 127, 127]];
 
@@ -140,6 +146,60 @@ impl Chart {
         Frame { x: (x0, x1), y: (y0 - pad, y1 + pad), log_x: self.log_x }
     }
 
+    /// The legend's size in pixels (line sample and names).
+    fn legend_size(&self) -> (f64, f64) {
+        let longest = self.series.iter().map(|s| s.name.chars().count()).max().unwrap_or(0);
+        (36.0 + CHAR * longest as f64 + 8.0, LEGEND_ROW * self.series.len() as f64 + 4.0)
+    }
+
+    /// The frame and the legend's top-left corner: the corner of the plot where the legend
+    /// covers the fewest data points; where every corner covers some, the y range grows at the
+    /// top to leave the legend room there.
+    fn layout(&self) -> (Frame, (f64, f64)) {
+        let mut f = self.frame();
+        let (w, h) = self.legend_size();
+        let (x0, x1, y0, y1) = (LEFT, WIDTH as f64 - RIGHT, TOP, HEIGHT as f64 - BOTTOM);
+        let m = LEGEND_MARGIN;
+        let corners = [(x0 + m, y0 + m), (x1 - m - w, y0 + m), (x1 - m - w, y1 - m - h), (x0 + m, y1 - m - h)];
+        // Pixels of the lines (sampled every 4 px along each segment) and bands inside a box.
+        let covered = |f: &Frame, (cx, cy): (f64, f64)| {
+            let inside = |(px, py): (f64, f64)| px >= cx && px <= cx + w && py >= cy && py <= cy + h;
+            let along = |a: (f64, f64), b: (f64, f64)| {
+                // Segments leave the plot at most by its diagonal; a segment to infinity, not at all.
+                let length = (b.0 - a.0).hypot(b.1 - a.1);
+                let steps = if length.is_finite() { (length / 4.0).ceil().clamp(1.0, 400.0) as usize } else { 0 };
+                (0..=steps).filter(move |&i| {
+                    let t = i as f64 / steps as f64;
+                    inside((a.0 + t * (b.0 - a.0), a.1 + t * (b.1 - a.1)))
+                })
+            };
+            self.series
+                .iter()
+                .map(|s| {
+                    let pts: Vec<(f64, f64)> =
+                        s.points.iter().filter(|p| p.1.is_finite()).map(|p| (f.px(p.0), f.py(p.1))).collect();
+                    let line: usize = pts.windows(2).map(|p| along(p[0], p[1]).count()).sum();
+                    let alone = usize::from(pts.len() == 1 && inside(pts[0]));
+                    let band =
+                        s.band.iter().filter(|b| inside((f.px(b.0), f.py(b.1))) || inside((f.px(b.0), f.py(b.2))));
+                    line + alone + band.count()
+                })
+                .sum::<usize>()
+        };
+        if self.series.len() < 2 && self.series.iter().all(|s| s.name.is_empty()) {
+            return (f, corners[0]);
+        }
+        let best = corners.iter().copied().min_by_key(|&c| covered(&f, c)).expect("four corners");
+        if covered(&f, best) == 0 {
+            return (f, best);
+        }
+        // Headroom: the data's top stays below the legend.
+        let plot = y1 - y0;
+        let room = (h + 2.0 * m) / plot;
+        f.y.1 += (f.y.1 - f.y.0) * room / (1.0 - room).max(0.2);
+        (f, corners[0])
+    }
+
     fn x_ticks(&self, f: &Frame) -> Vec<f64> {
         if self.log_x {
             let (a, b) = (f.x.0.log10().floor() as i32, f.x.1.log10().ceil() as i32);
@@ -154,7 +214,7 @@ impl Chart {
 
     /// The chart as an SVG document.
     pub fn svg(&self) -> String {
-        let f = self.frame();
+        let (f, (lx, ly)) = self.layout();
         let mut s = String::new();
         let _ = writeln!(
             s,
@@ -207,14 +267,14 @@ impl Chart {
                 r#"<polyline points="{}" fill="none" stroke="rgb({r},{g},{b})" stroke-width="2"/>"#,
                 pts.join(" ")
             );
-            let ly = y0 + 18.0 + 18.0 * k as f64;
+            let row = ly + LEGEND_ROW * (k as f64 + 0.5) + 2.0;
             let _ = writeln!(
                 s,
-                r#"<line x1="{}" y1="{ly}" x2="{}" y2="{ly}" stroke="rgb({r},{g},{b})" stroke-width="3"/><text x="{}" y="{}">{}</text>"#,
-                x0 + 10.0,
-                x0 + 30.0,
-                x0 + 36.0,
-                ly + 4.0,
+                r#"<line x1="{}" y1="{row}" x2="{}" y2="{row}" stroke="rgb({r},{g},{b})" stroke-width="3"/><text x="{}" y="{}" font-size="15">{}</text>"#,
+                lx + 6.0,
+                lx + 28.0,
+                lx + 36.0,
+                row + 5.0,
                 escape(&series.name)
             );
         }
@@ -244,7 +304,7 @@ impl Chart {
 
     /// The chart as PNG bytes.
     pub fn png(&self) -> Vec<u8> {
-        let f = self.frame();
+        let (f, (lx, ly)) = self.layout();
         let mut c = Canvas { px: vec![255; WIDTH * HEIGHT * 3] };
         let (x0, x1, y0, y1) = (LEFT, WIDTH as f64 - RIGHT, TOP, HEIGHT as f64 - BOTTOM);
         let grey = [221, 221, 221];
@@ -257,7 +317,7 @@ impl Chart {
             let y = f.py(t);
             c.line((x0, y), (x1, y), grey, 1);
             let l = label(t);
-            c.text(&l, x0 - 6.0 - 8.0 * l.len() as f64 / 2.0, y - 4.0, true);
+            c.text(&l, x0 - 6.0 - CHAR * l.len() as f64 / 2.0, y - CHAR / 2.0, true);
         }
         for (k, series) in self.series.iter().enumerate() {
             let colour = PALETTE[k % PALETTE.len()];
@@ -277,16 +337,16 @@ impl Chart {
             for w in pts.windows(2) {
                 c.line(w[0], w[1], colour, 2);
             }
-            let ly = y0 + 18.0 + 18.0 * k as f64;
-            c.line((x0 + 10.0, ly), (x0 + 30.0, ly), colour, 3);
-            c.text(&series.name, x0 + 36.0, ly - 4.0, false);
+            let row = ly + LEGEND_ROW * (k as f64 + 0.5) + 2.0;
+            c.line((lx + 6.0, row), (lx + 28.0, row), colour, 3);
+            c.text(&series.name, lx + 36.0, row - CHAR / 2.0, false);
         }
         for (a, b) in [((x0, y0), (x1, y0)), ((x1, y0), (x1, y1)), ((x1, y1), (x0, y1)), ((x0, y1), (x0, y0))] {
             c.line(a, b, [0, 0, 0], 1);
         }
-        c.text(&self.title, WIDTH as f64 / 2.0, 12.0, true);
-        c.text(&self.x_label, (x0 + x1) / 2.0, HEIGHT as f64 - 25.0, true);
-        c.text(&self.y_label, 4.0, 20.0, false);
+        c.fitted(&self.title, WIDTH as f64 / 2.0, 4.0);
+        c.fitted(&self.x_label, (x0 + x1) / 2.0, HEIGHT as f64 - CHAR - 6.0);
+        c.text(&self.y_label, 4.0, TOP - CHAR - 6.0, false);
         c.encode()
     }
 
@@ -329,15 +389,30 @@ impl Canvas {
         }
     }
 
-    /// 8x8 text with its top-left at (x, y), or centred on x.
+    /// Text in the 8x8 font at [`TEXT_SCALE`], its top-left at (x, y), or centred on x.
     fn text(&mut self, s: &str, x: f64, y: f64, centred: bool) {
-        let x = if centred { x - 4.0 * s.chars().count() as f64 } else { x };
+        self.text_at(s, x, y, centred, TEXT_SCALE);
+    }
+
+    /// Text at [`TEXT_SCALE`], or at half of it where that is too wide for the image (a long
+    /// title), centred on x.
+    fn fitted(&mut self, s: &str, x: f64, y: f64) {
+        let fits = CHAR * s.chars().count() as f64 <= WIDTH as f64 - 8.0;
+        self.text_at(s, x, y, true, if fits { TEXT_SCALE } else { (TEXT_SCALE / 2).max(1) });
+    }
+
+    fn text_at(&mut self, s: &str, x: f64, y: f64, centred: bool, scale: i64) {
+        let char = 8.0 * scale as f64;
+        let x = if centred { x - char / 2.0 * s.chars().count() as f64 } else { x };
         for (k, ch) in s.chars().enumerate() {
             let glyph = font8x8::BASIC_FONTS.get(ch).or_else(|| font8x8::BASIC_FONTS.get('?')).unwrap_or([0; 8]);
             for (row, bits) in glyph.iter().enumerate() {
                 for col in 0..8 {
                     if bits & (1 << col) != 0 {
-                        self.blend(x as i64 + 8 * k as i64 + col, y as i64 + row as i64, [0, 0, 0], 1.0);
+                        for (dx, dy) in (0..scale).flat_map(|dx| (0..scale).map(move |dy| (dx, dy))) {
+                            let px = x as i64 + char as i64 * k as i64 + scale * col + dx;
+                            self.blend(px, y as i64 + scale * row as i64 + dy, [0, 0, 0], 1.0);
+                        }
                     }
                 }
             }
@@ -378,6 +453,30 @@ mod tests {
     }
 
     #[test]
+    fn the_legend_goes_where_it_covers_no_data() {
+        // A falling line through the top-left and bottom-right corners, a flat one along the
+        // middle: the legend takes the top-right corner.
+        let falling: Vec<(f64, f64)> = (0..=100).map(|i| (i as f64, 100.0 - i as f64)).collect();
+        let flat: Vec<(f64, f64)> = (0..=100).map(|i| (i as f64, 50.0)).collect();
+        let chart = Chart::new("t", "x", "y")
+            .series(Series::line("falling", falling.clone()))
+            .series(Series::line("flat", flat.clone()));
+        let (f, (lx, ly)) = chart.layout();
+        let (w, h) = chart.legend_size();
+        assert!(lx > WIDTH as f64 / 2.0 && ly < HEIGHT as f64 / 2.0, "legend at ({lx}, {ly})");
+        let covered = falling.iter().chain(&flat).filter(|p| {
+            let (x, y) = (f.px(p.0), f.py(p.1));
+            x >= lx && x <= lx + w && y >= ly && y <= ly + h
+        });
+        assert_eq!(covered.count(), 0);
+        // Data in every corner: the y range grows so that the legend sits above it.
+        let corners = vec![(0.0, 0.0), (0.0, 100.0), (100.0, 100.0), (100.0, 0.0), (0.0, 0.0)];
+        let chart = Chart::new("t", "x", "y").series(Series::line("box", corners)).series(Series::line("b", flat));
+        let (f, (_, ly)) = chart.layout();
+        assert!(f.py(100.0) > ly + chart.legend_size().1, "the data's top below the legend");
+    }
+
+    #[test]
     fn charts_render_lines_where_the_data_is() {
         let chart = Chart::new("t", "x", "y")
             .series(Series::line("a", vec![(0.0, 0.0), (1.0, 1.0)]).with_band(vec![(0.0, -0.1, 0.1), (1.0, 0.9, 1.1)]));
@@ -390,7 +489,7 @@ mod tests {
         let mut reader = decoder.read_info().unwrap();
         let mut buf = vec![0; reader.output_buffer_size().unwrap()];
         reader.next_frame(&mut buf).unwrap();
-        let f = chart.frame();
+        let f = chart.layout().0;
         let (x, y) = (f.px(0.5).round() as usize, f.py(0.5).round() as usize);
         let i = (y * WIDTH + x) * 3;
         assert_eq!(&buf[i..i + 3], &PALETTE[0], "line drawn through (0.5, 0.5)");
