@@ -15,13 +15,18 @@ use std::path::Path;
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
+    /// The simulated humanoid (`[sim]`).
     pub sim: SimConfig,
+    /// PPO tracking experts (`[track]`, `[track.reward]`).
     #[serde(default)]
     pub track: TrackConfig,
+    /// Noisy expert rollouts (`[collect]`).
     #[serde(default)]
     pub collect: CollectConfig,
+    /// The trajectory model's network (`[model]`).
     #[serde(default)]
     pub model: ModelConfig,
+    /// Its training (`[train]`).
     #[serde(default)]
     pub train: TrainConfig,
     /// Inverse dynamics beside the FM model (`flowmimic inverse`).

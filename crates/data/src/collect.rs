@@ -39,6 +39,7 @@ pub struct CollectConfig {
     /// them): what an expert does while it is failing is not worth imitating.
     #[serde(default)]
     pub drop_before_failure: usize,
+    /// Seed of the rollouts' starts and action noise.
     pub seed: u64,
 }
 

@@ -2,6 +2,7 @@
 //! table, notes and the paper's numbers beside ours: what `flowmimic eval ...` runs, callable
 //! from a library ([`Study`] holds what every experiment shares).
 
+use crate::outcome::{FOLLOWED_SPEED, FOLLOWED_YAW_RATE, followed};
 use crate::protocols::{self, Bench, Point, ReachSetup, SEGMENT_SETTLE};
 use crate::sweep::{EvalModel, Experiment, Result, Rows, Summary, finish, sweep};
 use crate::{frechet_distance, gaussian};
@@ -179,11 +180,15 @@ impl Study<'_> {
                 "left_rmse",
                 "right_rmse",
                 "fell",
+                "forward_followed",
+                "backward_followed",
+                "left_followed",
+                "right_followed",
             ],
             plot: "velocity_rmse",
             x_label: "guidance scale w",
             y_label: "velocity RMSE (m/s)",
-            header: "| model | H | w | velocity RMSE (m/s) | times unguided | per segment: forward / backward / left / right (m/s) | yaw-rate RMSE (rad/s) | forward / backward (m/s) | left / right (rad/s) | falls |\n|---|---|---|---|---|---|---|---|---|---|",
+            header: "| model | H | w | velocity RMSE (m/s) | times unguided | per segment: forward / backward / left / right (m/s) | yaw-rate RMSE (rad/s) | forward / backward (m/s) | left / right (rad/s) | followed: forward / backward / left / right | falls |\n|---|---|---|---|---|---|---|---|---|---|---|",
         };
         let notes = format!(
             "Forward 1.0 m/s, backward 0.5 m/s, turn left and right (0.8 m/s at 0.6 rad/s), 3 s each; RMSE between commanded \
@@ -191,6 +196,8 @@ impl Study<'_> {
              Per segment, the mean achieved forward velocity (forward, backward; commanded 1.0 and -0.5 m/s) and yaw rate \
              (turns; commanded 0.6 and -0.6 rad/s) from {SEGMENT_SETTLE} s after the segment's start, before any fall, and \
              the velocity RMSE of each segment over all its steps (the change of gait included); \
+             followed: the share of trials in which a segment's achieved forward and sideways speed come within \
+             {FOLLOWED_SPEED} m/s and its yaw rate within {FOLLOWED_YAW_RATE} rad/s of the command, with no fall; \
              times unguided: the mean RMSE over the same model's at w 0 and this NFE, when the sweep has it. \
              Paper: RMSE ≈ 0.55 at w = 40; 1.05 at H = 2 to 0.70 at H = 16."
         );
@@ -199,15 +206,21 @@ impl Study<'_> {
             (scales, nfe, trials, 360),
             |bench, point, report| {
                 let r = protocols::joystick(bench, point, trials, report)?;
+                let asked = Task::joystick_eval().joystick;
                 Ok(r.iter()
                     .map(|t| {
                         let [fwd, back, left, right] =
                             [0, 1, 2, 3].map(|i| t.segments.get(i).copied().unwrap_or([f64::NAN; 3]));
                         let per = [0, 1, 2, 3].map(|i| t.segment_rmse.get(i).copied().unwrap_or(f64::NAN));
+                        let followed = [0, 1, 2, 3].map(|i| {
+                            let s = &asked[i];
+                            rate(!t.fell && t.segments.get(i).is_some_and(|&a| followed([s.vx, s.vy, s.yaw_rate], a)))
+                        });
                         vec![t.velocity_rmse, t.yaw_rate_rmse, fwd[0], back[0], left[2], right[2]]
                             .into_iter()
                             .chain(per)
                             .chain([rate(t.fell)])
+                            .chain(followed)
                             .collect()
                     })
                     .collect())
@@ -216,7 +229,7 @@ impl Study<'_> {
                 let share = unguided
                     .map_or_else(|| "-".into(), |u| format!("{:.3}", s.mean["velocity_rmse"] / u.mean["velocity_rmse"]));
                 format!(
-                    "| {} | {} | {} | {:.3} ± {:.3} | {share} | {:.2} / {:.2} / {:.2} / {:.2} | {:.3} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0}% |",
+                    "| {} | {} | {} | {:.3} ± {:.3} | {share} | {:.2} / {:.2} / {:.2} / {:.2} | {:.3} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0} / {:.0} / {:.0} / {:.0}% | {:.0}% |",
                     m.label,
                     s.horizon,
                     s.scale,
@@ -231,6 +244,10 @@ impl Study<'_> {
                     s.mean["backward_vx"],
                     s.mean["left_yaw_rate"],
                     s.mean["right_yaw_rate"],
+                    100.0 * s.mean["forward_followed"],
+                    100.0 * s.mean["backward_followed"],
+                    100.0 * s.mean["left_followed"],
+                    100.0 * s.mean["right_followed"],
                     100.0 * s.mean["fell"]
                 )
             },

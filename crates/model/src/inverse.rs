@@ -30,12 +30,15 @@ const FORMAT: &str = "flowmimic-inverse-dynamics/1";
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct InverseConfig {
+    /// Hidden layer widths of the MLP.
     pub hidden: Vec<usize>,
+    /// Optimiser steps, transitions per step and Adam's learning rate.
     pub steps: usize,
     pub batch: usize,
     pub lr: f32,
     /// Share of rollouts held out to measure the fit.
     pub validation_fraction: f64,
+    /// Seed of the initial weights and the batches.
     pub seed: u64,
 }
 

@@ -37,7 +37,9 @@ pub enum ModelError {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct TrainConfig {
+    /// Optimiser steps.
     pub steps: usize,
+    /// Windows per step.
     pub batch: usize,
     /// Adam's learning rate after warm-up.
     pub lr: f32,
@@ -70,8 +72,11 @@ pub struct TrainConfig {
     pub validation_fraction: f64,
     /// Validation windows evaluated (with fixed noise) at each log line.
     pub validation_windows: usize,
+    /// Steps between log lines (and validations).
     pub log_every: usize,
+    /// Steps between checkpoints.
     pub checkpoint_every: usize,
+    /// Seed of the initial weights, the batches and the noise.
     pub seed: u64,
 }
 

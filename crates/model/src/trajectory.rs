@@ -72,10 +72,15 @@ pub struct ModelConfig {
     pub history: usize,
     /// Prediction horizon H.
     pub horizon: usize,
+    /// Width of the Transformer's tokens.
     pub d_model: usize,
+    /// Attention heads per layer (d_model divides among them).
     pub heads: usize,
+    /// Transformer blocks.
     pub layers: usize,
+    /// Width of each block's feed-forward layer.
     pub d_ff: usize,
+    /// Sinusoidal features of the noise level (even; split between the times of MeanFlow).
     pub time_features: usize,
     /// Which state an action shares its token with.
     pub pairing: Pairing,

@@ -24,6 +24,7 @@ pub struct TransformerConfig {
     pub token_dim: usize,
     /// Tokens per sample (fixed: each position has its own learned embedding).
     pub tokens: usize,
+    /// Token width, attention heads and blocks.
     pub d_model: usize,
     pub heads: usize,
     pub layers: usize,
