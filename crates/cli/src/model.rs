@@ -5,12 +5,13 @@ use anyhow::{Context, Result, bail};
 use flowmimic_data::{Dataset, Stats};
 use flowmimic_model::train::{CHECKPOINT_FILE, MODEL_FILE};
 use flowmimic_model::{
-    InverseConfig, InverseDynamics, ModelConfig, TokenLayout, TrainConfig, Trainer, TrajectoryModel, WindowSet,
+    InverseConfig, InverseDynamics, ModelConfig, Pairing, TokenLayout, TrainConfig, Trainer, TrajectoryModel, WindowSet,
 };
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::{NUM_DOFS, STATE_DIM};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
+use rand_distr::{Distribution, StandardNormal};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -204,6 +205,45 @@ pub fn bench(sizes: &[(&str, ModelConfig)], repeats: usize) -> Result<()> {
                 }
             }
         }
+    }
+    // A training step: forward, backward and Adam at the training batch, in the preset's shape
+    // and the shipped guidance models' (H 16, state-action-state tokens).
+    println!("\ntraining step (forward, backward, Adam; FLOPs counted as 3 forward passes)");
+    println!("{:<12} {:>5} {:>6} {:>11} {:>9} {:>7}", "size", "H", "batch", "median ms", "GFLOP", "peak");
+    let guidance = |c: &ModelConfig| ModelConfig { horizon: 16, pairing: Pairing::StateActionState, ..*c };
+    for (name, config) in sizes.iter().flat_map(|(n, c)| [(n.to_string(), *c), (format!("{n}-guide"), guidance(c))]) {
+        let layout = layout(&config);
+        let mut model = untrained(&config, &layout, TrainConfig::default().objective("fm")?);
+        let batch = 256; // the cpu and paper presets' batch
+        let (c, f) = (layout.cond_len(), layout.future_len());
+        let mut rng = StdRng::seed_from_u64(0);
+        let mut normal = |n: usize| -> Vec<f32> { (0..n).map(|_| StandardNormal.sample(&mut rng)).collect() };
+        let (x, cond, target) = (normal(batch * f), normal(batch * c), normal(batch * f));
+        let t: Vec<f32> = (0..batch).map(|i| (i as f32 + 0.5) / batch as f32).collect();
+        let mut adam = flowmimic_nn::Adam::new(model.net.net.num_params());
+        let mut times: Vec<f64> = (0..repeats.max(1) + 1)
+            .map(|_| {
+                let start = Instant::now();
+                let tape = model.net.forward(&x, &t, &cond, batch);
+                let pred = model.net.future(&tape.output);
+                let d: Vec<f32> = pred.iter().zip(&target).map(|(p, y)| 2.0 * (p - y) / pred.len() as f32).collect();
+                let mut grads = vec![0.0; model.net.net.num_params()];
+                model.net.net.backward(&tape, &model.net.output_cotangent(&d, batch), &mut grads);
+                adam.step(&mut model.net.net.params, &grads, 1e-4);
+                start.elapsed().as_secs_f64()
+            })
+            .skip(1)
+            .collect();
+        times.sort_by(f64::total_cmp);
+        let median = times[times.len() / 2];
+        let flops = 3.0 * model.sample_flops(batch, 1);
+        println!(
+            "{name:<12} {:>5} {batch:>6} {:>11.1} {:>9.2} {:>6.1}%",
+            config.horizon,
+            median * 1e3,
+            flops / 1e9,
+            100.0 * flops / median / 1e9 / peak
+        );
     }
     Ok(())
 }
