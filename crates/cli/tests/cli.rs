@@ -17,6 +17,11 @@ fn stages_connect_through_their_files() {
     for file in ["policy.safetensors", "clip.safetensors", "log.csv", "config.json", "reward.png", "body_error.svg"] {
         assert!(dir.join("run").join(file).exists(), "run/{file} missing");
     }
+    // Each reward term's mean per iteration is a column of the log.
+    let log = std::fs::read_to_string(dir.join("run/log.csv")).unwrap();
+    let (header, row) = (log.lines().next().unwrap(), log.lines().nth(1).unwrap());
+    assert!(header.ends_with("reward_action_rate,reward_joint_limit"), "{header}");
+    assert_eq!(header.split(',').count(), row.split(',').count(), "{header}\n{row}");
     // Training again into the same run without --resume is refused; with it, it continues.
     let (success, text) = flowmimic(&dir, &["track", "train", "--clip", "clips/w.clip.safetensors", "-o", "run"]);
     assert!(!success && text.contains("--resume"), "{text}");

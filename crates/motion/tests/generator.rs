@@ -3,18 +3,13 @@
 //! detection on the reference poses), planted feet do not slide, and the root follows the
 //! command.
 
-use flowmimic_geom::{heading, wrap_angle};
+mod common;
+
 use flowmimic_motion::generator::{self, Schedule};
-use flowmimic_motion::{
-    Clip, Coverage, GaitParams, Segment, WanderParams, clip::CONTACT_HEIGHT, generate, scheduled, wander,
-};
-use flowmimic_sim::skeleton::body;
+use flowmimic_motion::{Clip, Coverage, GaitParams, Segment, WanderParams, generate, scheduled, wander};
 use flowmimic_sim::{CONTROL_HZ, Humanoid, SimConfig};
 use rand::{Rng, SeedableRng};
 use std::sync::Arc;
-
-const LEFT_LEG: [usize; 4] = [body::L_HIP, body::L_KNEE, body::L_ANKLE, body::L_TOE];
-const RIGHT_LEG: [usize; 4] = [body::R_HIP, body::R_KNEE, body::R_ANKLE, body::R_TOE];
 
 /// Walks from the whole range: any speed forward and back, sideways, turn rate, heading and
 /// step frequency the generator accepts, plus wandering walks, walks of transitions and a scheduled walk that
@@ -59,32 +54,19 @@ fn generated_walks_keep_their_invariants() {
         let mut stance_speeds = Vec::new();
         for (t, k) in clip.bodies.iter().enumerate() {
             // The chest and head face within 25 degrees of the pelvis.
-            let pelvis = heading(k.rot[body::PELVIS]);
-            for b in [body::CHEST, body::HEAD] {
-                let off = wrap_angle(heading(k.rot[b]) - pelvis).to_degrees();
-                assert!(off.abs() < 25.0, "{what}: frame {t}: body {b} faces {off:.0} deg from the pelvis");
-            }
+            let turn = common::upper_body_turn(k);
+            assert!(turn < 25.0, "{what}: frame {t}: the upper body faces {turn:.0} deg from the pelvis");
             // The legs never touch each other.
             env.reset(&clip.qpos[t], &clip.qvel[t]).unwrap();
-            for (a, b) in env.self_contacts() {
-                let crosses = (LEFT_LEG.contains(&a) && RIGHT_LEG.contains(&b))
-                    || (RIGHT_LEG.contains(&a) && LEFT_LEG.contains(&b));
-                assert!(
-                    !crosses,
-                    "{what}: frame {t}: bodies {a} and {b} touch; command {:?} {:?}",
-                    schedule.at(t as f64 / 30.0),
-                    schedule.keys.iter().filter(|k| (k.0 - t as f64 / 30.0).abs() < 3.0).collect::<Vec<_>>()
+            if let Some((a, b)) = env.self_contacts().into_iter().find(|&pair| common::legs_touch(pair)) {
+                let near: Vec<_> = schedule.keys.iter().filter(|k| (k.0 - t as f64 / 30.0).abs() < 3.0).collect();
+                panic!(
+                    "{what}: frame {t}: bodies {a} and {b} touch; command {:?} {near:?}",
+                    schedule.at(t as f64 / 30.0)
                 );
             }
             // Planted feet do not slide: the touching part of a foot on the ground is still.
-            for (side, [ankle, toe]) in [[body::L_ANKLE, body::L_TOE], [body::R_ANKLE, body::R_TOE]].iter().enumerate()
-            {
-                let [heel_z, toe_z] = env.foot_bottoms()[side];
-                if heel_z.min(toe_z) < CONTACT_HEIGHT {
-                    let part = if toe_z < heel_z { *toe } else { *ankle };
-                    stance_speeds.push(k.lin_vel[part].truncate().length());
-                }
-            }
+            stance_speeds.extend(common::stance_speeds(&env, k));
         }
         let mean = stance_speeds.iter().sum::<f64>() / stance_speeds.len() as f64;
         assert!(mean < 0.05, "{what}: feet on the ground move at {mean:.3} m/s on average");

@@ -3,10 +3,11 @@
 //! the arm never passes through the torso (the simulator's own collision detection on the
 //! reference poses), and the walking invariants still hold.
 
-use flowmimic_geom::{heading, wrap_angle};
+mod common;
+
 use flowmimic_motion::generator::{self, Schedule};
 use flowmimic_motion::reach::{self, Reaching};
-use flowmimic_motion::{Clip, GaitParams, RetargetReport, WanderParams, clip::CONTACT_HEIGHT, generate, wander};
+use flowmimic_motion::{Clip, GaitParams, RetargetReport, WanderParams, generate, wander};
 use flowmimic_sim::skeleton::body;
 use flowmimic_sim::{CONTROL_HZ, Humanoid, SimConfig};
 use rand::{Rng, SeedableRng};
@@ -23,8 +24,6 @@ const ARMS: [usize; 8] = [
     body::R_HAND,
 ];
 const TORSO: [usize; 4] = [body::PELVIS, body::TORSO, body::SPINE, body::CHEST];
-const LEFT_LEG: [usize; 4] = [body::L_HIP, body::L_KNEE, body::L_ANKLE, body::L_TOE];
-const RIGHT_LEG: [usize; 4] = [body::R_HIP, body::R_KNEE, body::R_ANKLE, body::R_TOE];
 
 /// Reaching clips of every kind: wandering walks, constant walks at any speed and direction,
 /// and standing, each with its schedule and where the retargeting placed it.
@@ -96,28 +95,16 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
             let what = format!("clip {n}, frame {t}");
             // The chest and head face within 30 degrees of the pelvis (25 when walking: leaning
             // toward a target out to the side turns a body's forward axis a little).
-            let pelvis = heading(k.rot[body::PELVIS]);
-            for b in [body::CHEST, body::HEAD] {
-                let off = wrap_angle(heading(k.rot[b]) - pelvis).to_degrees();
-                assert!(off.abs() < 30.0, "{what}: body {b} faces {off:.0} deg from the pelvis");
-            }
+            let turn = common::upper_body_turn(k);
+            assert!(turn < 30.0, "{what}: the upper body faces {turn:.0} deg from the pelvis");
             env.reset(&clip.qpos[t], &clip.qvel[t]).unwrap();
             for (a, b) in env.self_contacts() {
-                let legs = (LEFT_LEG.contains(&a) && RIGHT_LEG.contains(&b))
-                    || (RIGHT_LEG.contains(&a) && LEFT_LEG.contains(&b));
-                assert!(!legs, "{what}: legs {a} and {b} touch");
+                assert!(!common::legs_touch((a, b)), "{what}: legs {a} and {b} touch");
                 let arm_in_torso =
                     (ARMS.contains(&a) && TORSO.contains(&b)) || (TORSO.contains(&a) && ARMS.contains(&b));
                 assert!(!arm_in_torso, "{what}: arm and torso bodies {a} and {b} touch");
             }
-            for (side, [ankle, toe]) in [[body::L_ANKLE, body::L_TOE], [body::R_ANKLE, body::R_TOE]].iter().enumerate()
-            {
-                let [heel_z, toe_z] = env.foot_bottoms()[side];
-                if heel_z.min(toe_z) < CONTACT_HEIGHT {
-                    let part = if toe_z < heel_z { *toe } else { *ankle };
-                    stance_speeds.push(k.lin_vel[part].truncate().length());
-                }
-            }
+            stance_speeds.extend(common::stance_speeds(&env, k));
         }
         let mean = stance_speeds.iter().sum::<f64>() / stance_speeds.len() as f64;
         assert!(mean < 0.05, "clip {n}: feet on the ground move at {mean:.3} m/s on average");

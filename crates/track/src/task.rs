@@ -102,6 +102,25 @@ impl RewardTerms {
         ]
     }
 
+    /// Adds `weight` times each of `other`'s terms into these (means over steps).
+    pub fn add_weighted(&mut self, other: &Self, weight: f32) {
+        let mine = [
+            &mut self.anchor_pos,
+            &mut self.anchor_rot,
+            &mut self.body_pos,
+            &mut self.body_rot,
+            &mut self.body_lin_vel,
+            &mut self.body_ang_vel,
+            &mut self.root_vel,
+            &mut self.action_rate,
+            &mut self.joint_limit,
+        ];
+        for (m, (_, theirs)) in mine.into_iter().zip(other.named()) {
+            *m += weight * theirs;
+        }
+        self.body_pos_error += weight * other.body_pos_error;
+    }
+
     /// The reward: the kernels at their weights plus the penalties.
     pub fn total(&self, w: &RewardConfig) -> f32 {
         w.anchor_pos.weight as f32 * self.anchor_pos

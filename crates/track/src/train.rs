@@ -459,7 +459,8 @@ impl Trainer {
         };
         let (mut physics, mut network) = (0.0f64, 0.0f64);
         let (mut reward_sum, mut error_sum, mut ended_lengths) = (0.0f64, 0.0f64, 0usize);
-        let mut term_sums = [0.0f64; 9];
+        let mut term_means = RewardTerms::default();
+        let step_weight = 1.0 / (e * horizon) as f32;
         let mut raw = vec![0.0f32; e * OBS_DIM];
         self.observe_all(&mut raw);
         let started = Instant::now();
@@ -488,9 +489,7 @@ impl Trainer {
                     });
                 }
                 reward_sum += f64::from(total);
-                for (sum, (_, term)) in term_sums.iter_mut().zip(terms.named()) {
-                    *sum += f64::from(term);
-                }
+                term_means.add_weighted(terms, step_weight);
                 // Rewards are weighted by the step length, as Isaac Lab does: returns stay
                 // O(1-10), the scale rsl_rl's value clipping (0.2) is meant for.
                 let mut reward = total * REWARD_DT;
@@ -546,29 +545,7 @@ impl Trainer {
         let n = (e * horizon) as f64;
         log.env_steps = self.env_steps;
         log.mean_reward = (reward_sum / n) as f32;
-        let [
-            anchor_pos,
-            anchor_rot,
-            body_pos,
-            body_rot,
-            body_lin_vel,
-            body_ang_vel,
-            root_vel,
-            action_rate,
-            joint_limit,
-        ] = term_sums.map(|sum| (sum / n) as f32);
-        log.rewards = RewardTerms {
-            anchor_pos,
-            anchor_rot,
-            body_pos,
-            body_rot,
-            body_lin_vel,
-            body_ang_vel,
-            root_vel,
-            action_rate,
-            joint_limit,
-            body_pos_error: (error_sum / n) as f32,
-        };
+        log.rewards = term_means;
         log.body_pos_error = (error_sum / n) as f32;
         for c in &mut log.clips {
             c.body_pos_error /= c.steps.max(1) as f32;
