@@ -146,15 +146,48 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
             let ck = Checkpoint::read(&run.join(RUN_POLICY))?;
             let (cfg, policy_net) = (ck.config()?, ck.policy()?);
             let clips = if clip.is_empty() { run_clips(humanoid, &run)? } else { load_clips(humanoid, &clip)? };
-            // One JSON line per clip, so that a failing clip cannot hide behind an average.
+            // One JSON line per clip, so that a failing clip cannot hide behind an average;
+            // with several, a table of them after (stderr, so that stdout stays JSON lines).
+            let mut reports = Vec::new();
             for clip in clips {
                 let setup = EvalSetup { episodes, start_frame, kicks, seed: 12345 };
                 let report = evaluate(humanoid, &policy_net, &clip, &cfg, setup)?;
                 println!("{}", serde_json::to_string(&report)?);
+                reports.push(report);
+            }
+            if reports.len() > 1 {
+                print_eval_table(&reports, kicks);
             }
         }
     }
     Ok(())
+}
+
+/// The per-clip reports as a table, worst completion first, with how many clips meet the
+/// tracking bar (95% of episodes complete, 90% with kicks; body error under 6 cm).
+fn print_eval_table(reports: &[flowmimic_track::train::EvalReport], kicks: bool) {
+    let bar = if kicks { 0.9 } else { 0.95 };
+    let mut sorted: Vec<_> = reports.iter().collect();
+    sorted.sort_by(|a, b| a.success_rate.total_cmp(&b.success_rate));
+    eprintln!(
+        "\n{:<20} {:>9} {:>10} {:>11} {:>12} {:>5}",
+        "clip", "completed", "body err", "steps", "root path", "bar"
+    );
+    for r in &sorted {
+        let meets = r.success_rate >= bar && r.body_pos_error < 0.06;
+        eprintln!(
+            "{:<20} {:>8.0}% {:>7.1} cm {:>5.0} / {:<5} {:>7.2} m/s {:>5}",
+            r.clip,
+            100.0 * r.success_rate,
+            100.0 * r.body_pos_error,
+            r.mean_steps,
+            r.clip_steps,
+            r.root_path_error,
+            if meets { "yes" } else { "no" }
+        );
+    }
+    let met = sorted.iter().filter(|r| r.success_rate >= bar && r.body_pos_error < 0.06).count();
+    eprintln!("{met} of {} clips meet the bar ({:.0}% complete, body error under 6 cm)", reports.len(), 100.0 * bar);
 }
 
 const CLIPS_CSV_HEADER: &str = "iteration,clip,steps,episodes,failures,body_pos_error";
