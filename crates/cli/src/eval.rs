@@ -172,14 +172,20 @@ pub enum EvalCommand {
 }
 
 fn load_models(specs: &[String]) -> Result<Vec<EvalModel>> {
-    let defaults = [format!("fm={}", crate::paths::model_or_default(None).display())];
-    let specs = if specs.is_empty() { &defaults[..] } else { specs };
+    let defaults;
+    let specs = if specs.is_empty() {
+        defaults = [format!("fm={}", crate::paths::model_or_default(None).display())];
+        &defaults[..]
+    } else {
+        specs
+    };
     specs
         .iter()
         .map(|s| {
             let (label, dir) = s.split_once('=').with_context(|| format!("--model {s}: use LABEL=DIR"))?;
-            let model = crate::run::load_model(Path::new(dir))?;
-            lib(EvalModel::new(label, Path::new(dir), model))
+            let dir = crate::paths::resolve(Path::new(dir));
+            let model = crate::run::load_model(&dir)?;
+            lib(EvalModel::new(label, &dir, model))
         })
         .collect()
 }

@@ -35,6 +35,10 @@ pub fn run(
     let mut rng = StdRng::seed_from_u64(7);
     let normal = |n: usize, rng: &mut StdRng| -> Vec<f32> { (0..n).map(|_| StandardNormal.sample(rng)).collect() };
     let n = CHECK_SAMPLES;
+    let path = &crate::paths::resolve(path);
+    if !path.exists() {
+        bail!("{}: no such directory (a model directory from `flowmimic train`, or an expert run)", path.display());
+    }
     if path.join(flowmimic_model::train::MODEL_FILE).exists() {
         let model = crate::run::load_model(path)?;
         let bytes =

@@ -97,7 +97,8 @@ pub enum MotionCommand {
         /// turns on the spot); none with --walking-only.
         #[arg(long, default_value_t = 2)]
         transitions: usize,
-        /// Folder of captures to import (skipped with a note when it does not exist).
+        /// Folder of captures to import (relative paths also from the checkout; skipped with a
+        /// note when it does not exist).
         #[arg(long, default_value = "../shared/data/mocap")]
         mocap: PathBuf,
         /// The walking corpus alone (the folder's top level, not arms/ and walks/): the clips
@@ -300,7 +301,7 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                     clips.push(flowmimic_motion::wander(humanoid, &clip_name, &p)?.0);
                 }
             } else {
-                let name = name.unwrap_or_else(|| "walk".into());
+                let name = name.unwrap_or_else(|| if reach.is_some() { "reach".into() } else { "walk".into() });
                 let set: Vec<(String, GaitParams)> = match count {
                     None => vec![(name, GaitParams { reach: reaching(seed), ..gait.params() })],
                     Some(n) => generator::sample_set(n, seed, gait.duration)?
@@ -317,11 +318,13 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 clip.save(&clip_path(&out, &clip.name))?;
                 row(humanoid, clip);
             }
-            println!("written to {}", out.display());
+            let files: Vec<String> = clips.iter().map(|c| clip_path(&out, &c.name).display().to_string()).collect();
+            println!("wrote {}", files.join(", "));
         }
         MotionCommand::Corpus { walks, duration, reaching, transitions, mocap, walking_only, out } => {
             let (reaching, transitions) = if walking_only { (0, 0) } else { (reaching, transitions) };
-            let params = CorpusParams { walks, duration, reaching, transitions, mocap: Some(mocap), walking_only };
+            let mocap = Some(crate::paths::resolve(&mocap));
+            let params = CorpusParams { walks, duration, reaching, transitions, mocap, walking_only };
             let clips = corpus(humanoid, params, &out)?;
             header();
             clips.iter().for_each(|c| row(humanoid, c));
@@ -355,7 +358,11 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
 /// with a note when it is not a folder).
 pub(crate) fn corpus(humanoid: &Arc<Humanoid>, mut params: CorpusParams, out: &Path) -> Result<Vec<Clip>> {
     if let Some(mocap) = params.mocap.take_if(|m| !m.is_dir()) {
-        eprintln!("note: {} is not a folder; the corpus has generated walks only", mocap.display());
+        eprintln!(
+            "note: {} is not a folder; the corpus has generated walks only (--mocap DIR: the \
+             captures, ../shared/data/mocap beside the checkout)",
+            mocap.display()
+        );
     }
     let corpus = flowmimic_motion::corpus(humanoid, &params)?;
     for (file, why) in &corpus.left_out {

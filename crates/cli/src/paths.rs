@@ -18,11 +18,20 @@ pub fn shipped(relative: &str) -> PathBuf {
     roots.map(|root| root.join(relative)).find(|p| p.exists()).unwrap_or_else(|| PathBuf::from(relative))
 }
 
+/// A path as given, or where it is missing and relative, the same path from the checkout (so
+/// that `pretrained/models/fm` and `../shared/data/mocap` work from any folder).
+pub fn resolve(path: &Path) -> PathBuf {
+    if path.exists() || path.is_absolute() {
+        return path.to_path_buf();
+    }
+    shipped(&path.to_string_lossy())
+}
+
 /// The model a command drives: `--model`, else the one `make run` trained when it exists in
 /// the current directory, else the shipped default; says which when none was named.
 pub fn model_or_default(model: Option<PathBuf>) -> PathBuf {
     if let Some(m) = model {
-        return m;
+        return resolve(&m);
     }
     if Path::new(PIPELINE_MODEL).join("model.safetensors").exists() {
         eprintln!("model: {PIPELINE_MODEL}, the one `make run` trained (--model {SHIPPED_MODEL} for the shipped one)");

@@ -42,8 +42,9 @@ pub struct RunArgs {
     pub schedule: Option<String>,
     #[arg(long, value_enum, default_value_t = HandArg::Right)]
     pub hand: HandArg,
-    /// Hand target in the world, `x,y,z` metres (the humanoid starts at the origin facing +x).
-    #[arg(long, default_value = "2.0,-0.4,1.3")]
+    /// Hand target in the world, `x,y,z` metres (the humanoid starts at the origin facing +x;
+    /// the shipped model's hand reaches 0.7-1.0 m high).
+    #[arg(long, default_value = "2.0,-0.4,0.85")]
     pub target: String,
     /// Pelvis goal in the world, `x,y` metres.
     #[arg(long, default_value = "4.0,2.0")]
@@ -78,17 +79,19 @@ pub struct RunArgs {
 /// else from the built-in default.
 #[derive(Args, Clone, Copy, Default)]
 pub struct DriveArgs {
-    /// Network evaluations per control step (default 5).
+    /// Network evaluations per control step (default: the model's recommended.toml for the
+    /// task, else 5).
     #[arg(long)]
     pub nfe: Option<usize>,
     /// Guidance scale w (v' = v - w grad G); each task's gradient is scaled to its error
     /// (m/s, rad/s, m) in the model's normalised coordinates, so w means the same for every
-    /// task; 0 for none (default 10).
+    /// task; 0 for none (default: the model's recommended.toml for the task, else 10).
     #[arg(long)]
     pub guidance_scale: Option<f32>,
     /// With a hand target: walk up to it (a pursuit command toward a point beside it that
     /// brings the hand there; with a waypoint, toward that point within 0.4 m of it) instead of
-    /// walking on (true without a value; default false).
+    /// walking on (true without a value; default: the model's recommended.toml for the task,
+    /// else false).
     #[arg(long, num_args = 0..=1, default_missing_value = "true")]
     pub approach: Option<bool>,
     #[command(flatten)]
@@ -103,18 +106,21 @@ pub struct GuidanceArgs {
     /// denoiser, so a cost on states reaches the executed action) or cost-only.
     #[arg(long, value_parser = parse_gradient, default_value = "through-network")]
     pub gradient: Gradient,
-    /// Solver steps that apply guidance, `start:end` (default: all but the last quarter).
+    /// Solver steps that apply guidance, `start:end` (default: the model's recommended.toml for
+    /// the task, else all but the last quarter).
     #[arg(long, value_parser = parse_interval)]
     pub guidance_interval: Option<(usize, usize)>,
     /// Adaptive guidance: each environment's scale becomes w times its executed joystick error
     /// over the last half second (m/s and rad/s) divided by this reference error, within w/4
-    /// and w; other tasks keep w. 0: the fixed scale w throughout (the default).
+    /// and w; other tasks keep w. 0: the fixed scale w throughout (default: the model's
+    /// recommended.toml for the task, else 0).
     #[arg(long, value_parser = parse_adaptive)]
     pub adaptive: Option<f32>,
     /// Share BETA of the executed action taken from inverse dynamics, 0 to 1: the action that
     /// the model directory's inverse dynamics (`flowmimic inverse`) reads out of the current
     /// state and the plan's next state, blended as a_plan + BETA (a_inverse - a_plan). 0: the
-    /// plan's own action (the paper; the default).
+    /// plan's own action (the paper; default: the model's recommended.toml for the task, else
+    /// 0).
     #[arg(long, value_name = "BETA")]
     pub inverse_dynamics: Option<f32>,
 }
@@ -445,10 +451,12 @@ pub(crate) fn print_outcome(o: &Outcome) {
     }
     if !o.waypoint.is_empty() {
         let arrived = o.waypoint.iter().filter(|t| t.arrival.is_some()).count();
+        let closest: Vec<f64> = o.waypoint.iter().map(|t| t.closest).collect();
         let last: Vec<f64> = o.waypoint.iter().map(|t| t.last).collect();
         println!(
-            "waypoint: the pelvis came within 0.5 m of the goal in {arrived} of {}; distance at the end {}",
+            "waypoint: the pelvis came within 0.5 m of the goal in {arrived} of {}; closest {}; at the end {}",
             last.len(),
+            list(&closest, "m"),
             list(&last, "m")
         );
     }
