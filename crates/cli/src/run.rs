@@ -43,12 +43,12 @@ pub struct RunArgs {
     #[arg(long, value_enum, default_value_t = HandArg::Right)]
     pub hand: HandArg,
     /// Hand target in the world, `x,y,z` metres (the humanoid starts at the origin facing +x;
-    /// the shipped model's hand reaches 0.7-1.0 m high).
-    #[arg(long, default_value = "2.0,-0.4,0.85")]
-    pub target: String,
-    /// Pelvis goal in the world, `x,y` metres.
-    #[arg(long, default_value = "4.0,2.0")]
-    pub goal: String,
+    /// the shipped model's hand reaches 0.7-1.0 m high) [default: 2.0,-0.4,0.85].
+    #[arg(long)]
+    pub target: Option<String>,
+    /// Pelvis goal in the world, `x,y` metres [default: 4.0,2.0].
+    #[arg(long)]
+    pub goal: Option<String>,
     #[command(flatten)]
     pub drive: DriveArgs,
     /// Simulated seconds (default: the joystick schedule's length, else 10 s).
@@ -276,8 +276,12 @@ impl RunArgs {
             HandArg::Left => Hand::Left,
             HandArg::Right => Hand::Right,
         };
-        let target = || -> Result<[f64; 3]> { Ok(numbers(&self.target, 3, "--target")?.try_into().expect("3")) };
-        let goal = || -> Result<[f64; 2]> { Ok(numbers(&self.goal, 2, "--goal")?.try_into().expect("2")) };
+        let target = || -> Result<[f64; 3]> {
+            Ok(numbers(self.target.as_deref().unwrap_or("2.0,-0.4,0.85"), 3, "--target")?.try_into().expect("3"))
+        };
+        let goal = || -> Result<[f64; 2]> {
+            Ok(numbers(self.goal.as_deref().unwrap_or("4.0,2.0"), 2, "--goal")?.try_into().expect("2"))
+        };
         let joystick = match &self.schedule {
             Some(s) => schedule(s)?,
             None => Task::joystick_eval().joystick,
@@ -294,6 +298,14 @@ impl RunArgs {
             }
         };
         task.validate()?;
+        let unused = |given: bool, flag: &str, uses: &[TaskKind]| {
+            if given && !uses.contains(&self.task) {
+                eprintln!("note: --{flag} is not used by --task {}", self.task_name());
+            }
+        };
+        unused(self.target.is_some(), "target", &[TaskKind::Reach, TaskKind::Compose]);
+        unused(self.goal.is_some(), "goal", &[TaskKind::Waypoint, TaskKind::Compose]);
+        unused(self.schedule.is_some(), "schedule", &[TaskKind::Joystick, TaskKind::Reach]);
         Ok(task)
     }
 
@@ -375,13 +387,17 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     }
     let clip = start_clip(humanoid, args.clip.as_deref())?;
     let out = args.out.clone().unwrap_or_else(|| PathBuf::from("runs/run").join(format!("{name}.rollout.safetensors")));
+    // A task that asks nothing (unguided walking) is not guided, whatever the scale.
+    let guidance = if args.task == TaskKind::Walk || control.guidance_scale == 0.0 {
+        "unguided".to_string()
+    } else {
+        format!("guidance {} on steps {:?}", control.guidance_scale, control.guidance_steps())
+    };
     eprintln!(
-        "{} model (H {}), NFE {}, guidance {} on steps {:?}, task {name}, {} env(s), {} s",
+        "{} model (H {}), NFE {}, {guidance}, task {name}, {} env(s), {} s",
         model.objective.label(),
         model.layout().spec.horizon,
         control.nfe,
-        control.guidance_scale,
-        control.guidance_steps(),
         args.envs,
         control.seconds
     );
