@@ -50,8 +50,7 @@ pub fn run(model_dir: &Path, out: &Path, drive: &DriveArgs, humanoid: &Arc<Human
 
     // 1. Joystick: forward, turn left, turn right, backward.
     let task = schedule();
-    let seconds = task.joystick.iter().map(|s| s.seconds).sum();
-    let control = joystick.control(drive.guidance.gradient, seconds);
+    let control = joystick.control(drive.guidance.gradient, task.schedule_seconds());
     let r = flowmimic_control::run(&model, humanoid, &clip, vec![task], &control, &name, |_| {})?;
     r.save(&out.join("joystick.rollout.safetensors"))?;
     let t = joystick_trial(&r, 0);

@@ -56,7 +56,7 @@ pub fn run(
             // from stored noise (with DDPM's ancestral noise, drawn after it).
             let layout = model.layout();
             let (c, f) = (layout.cond_len(), layout.future_len());
-            let times = if matches!(model.objective, Objective::MeanFlow { .. }) { 2 } else { 1 };
+            let times = model.objective.times();
             let (x, cond, noise) = (normal(n * f, &mut rng), normal(n * c, &mut rng), normal(n * f, &mut rng));
             let t: Vec<f32> = (0..n * times).map(|i| (i as f32 + 0.5) / (n * times) as f32).collect();
             let y = flowmimic_model::Network::predict(&model.net, &x, &t, &cond, n);

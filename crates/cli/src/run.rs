@@ -201,15 +201,7 @@ impl Chosen {
 /// A model directory's recommended settings for a task (`walk`, `joystick`, `reach`,
 /// `waypoint`, `compose`, `play`).
 pub fn recommended(dir: &Path, task: &str) -> Result<Settings> {
-    let r = Recommended::load(dir)?;
-    Ok(match task {
-        "joystick" => r.joystick,
-        "reach" => r.reach,
-        "waypoint" => r.waypoint,
-        "compose" => r.compose,
-        "play" => r.play,
-        _ => r.walk,
-    })
+    Ok(Recommended::load(dir)?.for_task(task))
 }
 
 /// `start:end` with start < end: the solver steps guidance acts on.
@@ -312,13 +304,13 @@ impl RunArgs {
     /// How long to run: `--seconds`, else the joystick schedule's length for a joystick task,
     /// else 10 s.
     pub fn seconds(&self) -> f64 {
-        let schedule = || match &self.schedule {
-            Some(s) => schedule(s).ok().map(|segs| segs.iter().map(|s| s.seconds).sum()),
-            None => Some(Task::joystick_eval().joystick.iter().map(|s| s.seconds).sum()),
+        let joystick = || match &self.schedule {
+            Some(s) => schedule(s).ok().map(|joystick| Task { joystick, ..Task::walk() }),
+            None => Some(Task::joystick_eval()),
         };
         match (self.seconds, self.task) {
             (Some(s), _) => s,
-            (None, TaskKind::Joystick) => schedule().unwrap_or(10.0),
+            (None, TaskKind::Joystick) => joystick().map_or(10.0, |t| t.schedule_seconds()),
             (None, _) => 10.0,
         }
     }
@@ -372,7 +364,7 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     let task = args.task(chosen.approach)?;
     let control = args.control(&chosen);
     if args.task == TaskKind::Joystick {
-        let length: f64 = task.joystick.iter().map(|s| s.seconds).sum();
+        let length = task.schedule_seconds();
         if control.seconds < length - 1e-9 {
             eprintln!(
                 "note: the schedule is {length} s long; --seconds {} runs its first {} s",

@@ -6,7 +6,7 @@ use clap::Subcommand;
 use flowmimic_motion::Clip;
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::Humanoid;
-use flowmimic_track::train::{Checkpoint, ClipLog, IterationLog};
+use flowmimic_track::train::{Checkpoint, ClipLog, EvalReport, IterationLog};
 use flowmimic_track::{EvalSetup, TrackConfig, Trainer, evaluate};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -165,7 +165,7 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
 
 /// The per-clip reports as a table, worst completion first, with how many clips meet the
 /// tracking bar (95% of episodes complete, 90% with kicks; body error under 6 cm).
-fn print_eval_table(reports: &[flowmimic_track::train::EvalReport], kicks: bool) {
+fn print_eval_table(reports: &[EvalReport], kicks: bool) {
     let bar = if kicks { 0.9 } else { 0.95 };
     let mut sorted: Vec<_> = reports.iter().collect();
     sorted.sort_by(|a, b| a.success_rate.total_cmp(&b.success_rate));
@@ -173,8 +173,8 @@ fn print_eval_table(reports: &[flowmimic_track::train::EvalReport], kicks: bool)
         "\n{:<20} {:>9} {:>10} {:>11} {:>12} {:>5}",
         "clip", "completed", "body err", "steps", "root path", "bar"
     );
+    let meets = |r: &EvalReport| r.success_rate >= bar && r.body_pos_error < 0.06;
     for r in &sorted {
-        let meets = r.success_rate >= bar && r.body_pos_error < 0.06;
         eprintln!(
             "{:<20} {:>8.0}% {:>7.1} cm {:>5.0} / {:<5} {:>7.2} m/s {:>5}",
             r.clip,
@@ -183,10 +183,10 @@ fn print_eval_table(reports: &[flowmimic_track::train::EvalReport], kicks: bool)
             r.mean_steps,
             r.clip_steps,
             r.root_path_error,
-            if meets { "yes" } else { "no" }
+            if meets(r) { "yes" } else { "no" }
         );
     }
-    let met = sorted.iter().filter(|r| r.success_rate >= bar && r.body_pos_error < 0.06).count();
+    let met = sorted.iter().filter(|r| meets(r)).count();
     eprintln!("{met} of {} clips meet the bar ({:.0}% complete, body error under 6 cm)", reports.len(), 100.0 * bar);
 }
 

@@ -84,15 +84,27 @@ impl Recommended {
         let bad = |m: String| ControlError::Start(format!("{}: {m}", path.display()));
         let text = flowmimic_io::read_to_string(&path).map_err(|e| ControlError::Start(e.to_string()))?;
         let r: Self = toml::from_str(&text).map_err(|e| bad(e.to_string()))?;
-        for (task, s) in [
-            ("walk", &r.walk),
-            ("joystick", &r.joystick),
-            ("reach", &r.reach),
-            ("waypoint", &r.waypoint),
-            ("compose", &r.compose),
-        ] {
+        for (task, s) in r.tasks() {
             s.validate(task).map_err(bad)?;
         }
         Ok(r)
+    }
+
+    /// Each task's settings, by the task's name (the file's table).
+    fn tasks(&self) -> [(&'static str, &Settings); 6] {
+        [
+            ("walk", &self.walk),
+            ("joystick", &self.joystick),
+            ("reach", &self.reach),
+            ("waypoint", &self.waypoint),
+            ("compose", &self.compose),
+            ("play", &self.play),
+        ]
+    }
+
+    /// The settings of the task named `task` (`walk`, `joystick`, `reach`, `waypoint`,
+    /// `compose`, `play`); none for another name.
+    pub fn for_task(&self, task: &str) -> Settings {
+        self.tasks().into_iter().find(|(name, _)| *name == task).map(|(_, s)| *s).unwrap_or_default()
     }
 }

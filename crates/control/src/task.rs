@@ -111,6 +111,11 @@ impl Task {
         }
     }
 
+    /// Seconds the joystick schedule lasts (its last segment holds after it).
+    pub fn schedule_seconds(&self) -> f64 {
+        self.joystick.iter().map(|s| s.seconds).sum()
+    }
+
     /// The joystick segment in force at `time`.
     pub fn joystick_at(&self, time: f64) -> Option<&JoystickSegment> {
         let mut end = 0.0;

@@ -37,6 +37,7 @@ fn a_bad_recommended_file_is_refused_with_its_name() {
         ("[joystick]\nguidance_interval = [3, 1]\n", "guidance_interval"),
         ("[joystik]\nnfe = 2\n", "joystik"),
         ("[walk]\nadaptive = -1.0\n", "adaptive"),
+        ("[play]\nguidance_scale = -30.0\n", "guidance_scale"),
     ] {
         std::fs::write(&file, text).unwrap();
         let err = Recommended::load(&dir).unwrap_err().to_string();

@@ -127,7 +127,7 @@ pub fn joystick(
     on_step: impl FnMut(&StepReport),
 ) -> Result<Vec<JoystickTrial>, ControlError> {
     let task = Task::joystick_eval();
-    let seconds: f64 = task.joystick.iter().map(|s| s.seconds).sum();
+    let seconds = task.schedule_seconds();
     let r = bench.run(vec![task; trials], point, seconds, false, on_step)?;
     Ok((0..trials).map(|e| joystick_trial(&r, e)).collect())
 }

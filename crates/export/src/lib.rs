@@ -13,7 +13,7 @@
 //! `policy.onnx` (an expert): input `obs` (B x 295, raw observations), output `action` (B x 69,
 //! the deterministic action); the observation normalisation is folded in.
 
-use flowmimic_model::{Objective, TrajectoryModel};
+use flowmimic_model::TrajectoryModel;
 use flowmimic_track::ppo::Policy;
 use onnx_protobuf::attribute_proto::AttributeType;
 use onnx_protobuf::tensor_proto::DataType;
@@ -197,7 +197,7 @@ impl Graph {
 /// a noise, as the objective in its metadata says); MeanFlow's network takes two times per
 /// sample, the interval's start and length.
 pub fn trajectory_model(model: &TrajectoryModel) -> Result<Vec<u8>, ExportError> {
-    let times = if matches!(model.objective, Objective::MeanFlow { .. }) { 2 } else { 1 };
+    let times = model.objective.times();
     let layout = model.layout();
     let net = &model.net.net;
     let c = net.config;

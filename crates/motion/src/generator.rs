@@ -526,6 +526,21 @@ impl Gait<'_> {
     }
 }
 
+/// A body's rest offset from its parent, m (the skeleton's, built once: the reach planner asks
+/// for them thousands of times per reach).
+pub(crate) fn rest_offset(b: usize) -> DVec3 {
+    static OFFSETS: std::sync::OnceLock<Vec<DVec3>> = std::sync::OnceLock::new();
+    OFFSETS.get_or_init(|| bodies().iter().map(|s| DVec3::from_array(s.offset)).collect())[b]
+}
+
+/// How high the ankle stands above the ground: as far as the foot geom reaches below it, m.
+pub(crate) fn ankle_height() -> f64 {
+    match bodies()[body::L_ANKLE].shape {
+        Shape::Box { center, half } => half[2] - center[2],
+        _ => unreachable!("the foot is a box"),
+    }
+}
+
 /// Knee position of a two-bone leg from hip to ankle, bending toward `forward`.
 pub(crate) fn knee(hip: DVec3, ankle: DVec3, thigh: f64, shin: f64, forward: DVec3) -> DVec3 {
     let d = (ankle - hip).length().clamp(1e-6, (thigh + shin) * 0.9999);
@@ -544,14 +559,9 @@ pub fn landmarks(schedule: &Schedule) -> Result<LandmarkClip, MotionError> {
 /// Landmarks of a generated walk whose reaching hands aim at their targets moved by `aim[frame]`
 /// (none where `aim` is short).
 fn landmarks_aimed(schedule: &Schedule, aim: &[DVec3]) -> Result<LandmarkClip, MotionError> {
-    let specs = bodies();
-    let off = |b: usize| DVec3::from_array(specs[b].offset);
+    let off = rest_offset;
     let (thigh, shin) = (off(body::L_KNEE).length(), off(body::L_ANKLE).length());
-    // The ankle stands as high above the ground as the foot geom reaches below it.
-    let ankle_height = match specs[body::L_ANKLE].shape {
-        Shape::Box { center, half } => half[2] - center[2],
-        _ => unreachable!("the foot is a box"),
-    };
+    let ankle_height = ankle_height();
     let gait = Gait { plan: Plan::new(schedule), hip_width: off(body::L_HIP).y, ankle_height };
     let planned: Vec<(DVec3, Bend)> = schedule.reaches.iter().map(|r| planned_reach(&gait.plan, r)).collect();
     let frames = (schedule.duration * CONTROL_HZ).round() as usize + 1;
@@ -573,9 +583,10 @@ fn landmarks_aimed(schedule: &Schedule, aim: &[DVec3]) -> Result<LandmarkClip, M
             let sway = activity * 0.02 * (cycle_phase - mid_stance).cos();
             let lean = 0.06 * c.speed; // lean into the walk
             let upright = root + DVec3::new(0.0, 0.0, pelvis_height + bob) + yaw_quat(yaw) * DVec3::new(0.0, sway, 0.0);
-            // A reach under way: its side, target and how far out the hand is.
-            let reaching = schedule.reach_at(t).map(|(k, w)| (schedule.reaches[k].side, planned[k].0, w));
-            let bend = schedule.reach_at(t).map_or(Bend::NONE, |(k, w)| planned[k].1.scaled(w));
+            // A reach under way: its side, target and how far out the hand is, and the bend.
+            let under_way = schedule.reach_at(t);
+            let reaching = under_way.map(|(k, w)| (schedule.reaches[k].side, planned[k].0, w));
+            let bend = under_way.map_or(Bend::NONE, |(k, w)| planned[k].1.scaled(w));
             let trunk = Trunk::new(upright, yaw, lean, bend);
             let Trunk { pelvis, pelvis_rot, chest, chest_rot } = trunk;
             let neck = chest + chest_rot * off(body::NECK);

@@ -9,8 +9,9 @@
 //! a two-bone chain from the shoulder to the hand, reaches the target with room to spare.
 
 use crate::MotionError;
+use crate::generator::{ankle_height, knee, rest_offset as offset};
 use flowmimic_geom::{DQuat, DVec3, yaw_quat};
-use flowmimic_sim::skeleton::{bodies, body};
+use flowmimic_sim::skeleton::body;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::FRAC_PI_2;
@@ -190,10 +191,6 @@ pub struct Trunk {
 /// Highest pelvis height while walking (legs slightly bent), m.
 pub const PELVIS_HEIGHT: f64 = 0.905;
 
-fn offset(b: usize) -> DVec3 {
-    DVec3::from_array(bodies()[b].offset)
-}
-
 impl Trunk {
     /// The trunk of a walker standing at the ground point `root`, facing `yaw`, bent by `bend`.
     pub fn standing(root: DVec3, yaw: f64, bend: Bend) -> Self {
@@ -234,10 +231,7 @@ const MAX_SHIN_TILT: f64 = 0.7;
 fn legs_hold(upright: &Trunk, bent: &Trunk) -> bool {
     let (thigh, shin) = (offset(body::L_KNEE).length(), offset(body::L_ANKLE).length());
     let hip = offset(body::L_HIP);
-    let ankle_height = match bodies()[body::L_ANKLE].shape {
-        flowmimic_sim::skeleton::Shape::Box { center, half } => half[2] - center[2],
-        _ => unreachable!("the foot is a box"),
-    };
+    let ankle_height = ankle_height();
     let forward = upright.pelvis_rot * DVec3::X;
     [1.0, -1.0].into_iter().all(|sign| {
         let side = DVec3::new(0.0, sign * hip.y, 0.0);
@@ -247,7 +241,7 @@ fn legs_hold(upright: &Trunk, bent: &Trunk) -> bool {
         if hip.distance(ankle) > 0.98 * (thigh + shin) {
             return false;
         }
-        let knee = crate::generator::knee(hip, ankle, thigh, shin, forward);
+        let knee = knee(hip, ankle, thigh, shin, forward);
         (knee - ankle).normalize().dot(forward).asin() <= MAX_SHIN_TILT
     })
 }
@@ -291,7 +285,7 @@ pub fn bend_for(target: DVec3, side: usize, trunk: impl Fn(Bend) -> Trunk) -> (B
 /// reaches), the elbow pointing toward `pole`.
 pub fn arm(shoulder: DVec3, hand: DVec3, pole: DVec3) -> (DVec3, DVec3) {
     let (upper, lower) = arm_bones();
-    let elbow = crate::generator::knee(shoulder, hand, upper, lower, pole);
+    let elbow = knee(shoulder, hand, upper, lower, pole);
     let wrist = elbow + (hand - elbow).normalize() * offset(body::L_WRIST).length();
     (elbow, wrist)
 }
