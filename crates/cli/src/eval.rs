@@ -7,7 +7,7 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use flowmimic_control::StepReport;
 use flowmimic_eval::experiments::{Study, Trials};
-use flowmimic_eval::protocols::ReachSetup;
+use flowmimic_eval::protocols::{ForestSetup, ReachSetup};
 use flowmimic_eval::sweep::{EvalModel, Rows};
 use flowmimic_sim::Humanoid;
 use std::path::{Path, PathBuf};
@@ -30,6 +30,10 @@ pub struct Common {
     trials: Option<usize>,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// Write each point's rollout (every trial, for `flowmimic view` and `render --env`) in
+    /// OUT/rollouts when its trials run (a point already in OUT's CSV is not run again).
+    #[arg(long)]
+    save_rollouts: bool,
     /// Actions of each sampled trajectory executed before sampling again (1 = the paper).
     #[arg(long, default_value_t = 1)]
     execute: usize,
@@ -43,8 +47,21 @@ pub struct Common {
 impl Common {
     /// Settings for a programmatic run (the pipeline): models as LABEL=DIR.
     pub fn new(models: Vec<String>, out: PathBuf, quick: bool) -> Self {
-        Self { models, out, quick, trials: None, seed: 0, execute: 1, clip: None, guidance: GuidanceArgs::default() }
+        let guidance = GuidanceArgs::default();
+        Self { models, out, quick, trials: None, seed: 0, save_rollouts: false, execute: 1, clip: None, guidance }
     }
+}
+
+/// The guidance scales a guided protocol is swept over, at one NFE.
+#[derive(Args, Clone)]
+pub struct Sweep {
+    /// Guidance scales (default: the first model's recommended w for the task, and 0 beside it
+    /// where the protocol compares with unguided walking: joystick, reach, waypoint).
+    #[arg(long, value_delimiter = ',')]
+    pub scales: Vec<f32>,
+    /// Network evaluations per step (default: the first model's recommended, else 5).
+    #[arg(long)]
+    pub nfe: Option<usize>,
 }
 
 #[derive(Subcommand)]
@@ -65,24 +82,16 @@ pub enum EvalCommand {
     Joystick {
         #[command(flatten)]
         common: Common,
-        /// Guidance scales (default: 0 and the first model's recommended w).
-        #[arg(long, value_delimiter = ',')]
-        scales: Vec<f32>,
-        /// Network evaluations per step (default: the first model's recommended, else 5).
-        #[arg(long)]
-        nfe: Option<usize>,
+        #[command(flatten)]
+        sweep: Sweep,
     },
     /// Random right-hand targets while walking (paper Fig. 4): hand-target distance and the
     /// share of trials whose hand comes within 0.15 m, against guidance scale for each model.
     Reach {
         #[command(flatten)]
         common: Common,
-        /// Guidance scales (default: 0 and the first model's recommended w).
-        #[arg(long, value_delimiter = ',')]
-        scales: Vec<f32>,
-        /// Network evaluations per step (default: the first model's recommended, else 5).
-        #[arg(long)]
-        nfe: Option<usize>,
+        #[command(flatten)]
+        sweep: Sweep,
         /// Target heights `LOW,HIGH` (m), drawn uniformly. The walking hand swings 0.74-0.85 m
         /// high; the default reaches above it, where walking-only data has no hand.
         #[arg(long, value_delimiter = ',', default_values_t = REACH_HEIGHTS)]
@@ -98,24 +107,31 @@ pub enum EvalCommand {
     Waypoint {
         #[command(flatten)]
         common: Common,
-        /// Guidance scales (default: 0 and the first model's recommended w).
-        #[arg(long, value_delimiter = ',')]
-        scales: Vec<f32>,
-        /// Network evaluations per step (default: the first model's recommended, else 5).
+        #[command(flatten)]
+        sweep: Sweep,
+    },
+    /// Walk to a goal 8-10 m ahead through standing cylinders (10-20 drawn, as many as fit 1 m
+    /// apart) or, --moving, 2-3 crossing the way, in 20 s: success (arrived within 0.5 m, no
+    /// contact, no fall), per trial too.
+    Forest {
+        #[command(flatten)]
+        common: Common,
+        #[command(flatten)]
+        sweep: Sweep,
+        /// 2-3 cylinders crossing the way at 0.5-1.0 m/s instead of a standing forest.
         #[arg(long)]
-        nfe: Option<usize>,
+        moving: bool,
+        /// The baseline: guidance ignores the obstacles (still solid), the waypoint alone.
+        #[arg(long)]
+        blind: bool,
     },
     /// Walk to a waypoint and touch a target there: success rate (pelvis within 0.5 m and hand
     /// within 0.15 m at once).
     Compose {
         #[command(flatten)]
         common: Common,
-        /// Guidance scales (default: the first model's recommended w).
-        #[arg(long, value_delimiter = ',')]
-        scales: Vec<f32>,
-        /// Network evaluations per step (default: the first model's recommended, else 5).
-        #[arg(long)]
-        nfe: Option<usize>,
+        #[command(flatten)]
+        sweep: Sweep,
         /// Height of the hand target (m).
         #[arg(long, default_value_t = 1.2)]
         height: f64,
@@ -237,6 +253,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         | EvalCommand::Joystick { common, .. }
         | EvalCommand::Reach { common, .. }
         | EvalCommand::Waypoint { common, .. }
+        | EvalCommand::Forest { common, .. }
         | EvalCommand::Compose { common, .. }
         | EvalCommand::Quality { common, .. }
         | EvalCommand::Guidance { common, .. }
@@ -246,10 +263,11 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     let clip = start_clip(humanoid, common.clip.as_deref())?;
     // Settings left out come from the first model's recommended ones for the protocol's task.
     let (task, nfe, approach) = match &cmd {
-        EvalCommand::Joystick { nfe, .. } | EvalCommand::Guidance { nfe, .. } => ("joystick", *nfe, None),
-        EvalCommand::Reach { nfe, approach, .. } => ("reach", *nfe, *approach),
-        EvalCommand::Waypoint { nfe, .. } => ("waypoint", *nfe, None),
-        EvalCommand::Compose { nfe, approach, .. } => ("compose", *nfe, *approach),
+        EvalCommand::Joystick { sweep, .. } => ("joystick", sweep.nfe, None),
+        EvalCommand::Guidance { nfe, .. } => ("joystick", *nfe, None),
+        EvalCommand::Reach { sweep, approach, .. } => ("reach", sweep.nfe, *approach),
+        EvalCommand::Waypoint { sweep, .. } | EvalCommand::Forest { sweep, .. } => ("waypoint", sweep.nfe, None),
+        EvalCommand::Compose { sweep, approach, .. } => ("compose", sweep.nfe, *approach),
         EvalCommand::Latency { guided: Some(_), .. } => ("joystick", None, None),
         _ => ("walk", None, None),
     };
@@ -260,6 +278,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         (true, true) => vec![0.0, chosen.guidance_scale],
         (true, false) => vec![chosen.guidance_scale],
     };
+    let rollouts = common.save_rollouts.then(|| common.out.join("rollouts"));
     let study = Study {
         models: &models,
         humanoid,
@@ -273,6 +292,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         guidance_steps: chosen.guidance_interval,
         adaptive: chosen.adaptive,
         inverse_dynamics: chosen.inverse_dynamics,
+        rollouts: rollouts.as_deref(),
         progress: &with_progress,
     };
     let reach_setup = |heights: &[f64]| -> Result<ReachSetup> {
@@ -280,13 +300,16 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     };
     lib(match &cmd {
         EvalCommand::Survival { nfe, seconds, .. } => study.survival(nfe, *seconds),
-        EvalCommand::Joystick { scales: s, .. } => study.joystick(&scales(s, true), chosen.nfe),
-        EvalCommand::Reach { scales: s, heights, .. } => {
-            study.reach(&scales(s, true), chosen.nfe, reach_setup(heights)?)
+        EvalCommand::Joystick { sweep, .. } => study.joystick(&scales(&sweep.scales, true), chosen.nfe),
+        EvalCommand::Reach { sweep, heights, .. } => {
+            study.reach(&scales(&sweep.scales, true), chosen.nfe, reach_setup(heights)?)
         }
-        EvalCommand::Waypoint { scales: s, .. } => study.waypoint(&scales(s, true), chosen.nfe),
-        EvalCommand::Compose { scales: s, height, .. } => {
-            study.compose(&scales(s, false), chosen.nfe, reach_setup(&[*height, *height])?)
+        EvalCommand::Waypoint { sweep, .. } => study.waypoint(&scales(&sweep.scales, true), chosen.nfe),
+        EvalCommand::Forest { sweep, moving, blind, .. } => {
+            study.forest(&scales(&sweep.scales, false), chosen.nfe, ForestSetup { moving: *moving, blind: *blind })
+        }
+        EvalCommand::Compose { sweep, height, .. } => {
+            study.compose(&scales(&sweep.scales, false), chosen.nfe, reach_setup(&[*height, *height])?)
         }
         EvalCommand::Quality { dataset, nfe, .. } => study.quality(dataset, nfe),
         EvalCommand::Latency { nfe, guided, .. } => study.latency(nfe, *guided),

@@ -6,7 +6,7 @@
 //! it (trainers resume from their checkpoints when the settings allow it).
 
 use crate::config::Config;
-use crate::eval::{self, Common, EvalCommand};
+use crate::eval::{self, Common, EvalCommand, Sweep};
 use crate::track::Start;
 use anyhow::{Context, Result};
 use flowmimic_motion::Clip;
@@ -128,13 +128,12 @@ pub fn run(config: &Config, preset: &str, out: &Path, clip_files: &[PathBuf]) ->
         eval::run(EvalCommand::Survival { common: common(), nfe: vec![1, 2, 5, 10, 20], seconds: None }, &humanoid)?;
         eval::run(EvalCommand::Latency { common: common(), nfe: vec![1, 2, 5, 10, 20], guided: None }, &humanoid)?;
         let fm_only = || Common::new(models[..1].to_vec(), eval_dir.clone(), quick);
-        let scales = vec![0.0, 3.0, 10.0, 30.0];
-        eval::run(EvalCommand::Joystick { common: fm_only(), scales: scales.clone(), nfe: Some(5) }, &humanoid)?;
+        let sweep = || Sweep { scales: vec![0.0, 3.0, 10.0, 30.0], nfe: Some(5) };
+        eval::run(EvalCommand::Joystick { common: fm_only(), sweep: sweep() }, &humanoid)?;
         eval::run(
             EvalCommand::Reach {
                 common: fm_only(),
-                scales,
-                nfe: Some(5),
+                sweep: sweep(),
                 heights: eval::REACH_HEIGHTS.to_vec(),
                 approach: Some(false),
             },

@@ -10,7 +10,7 @@ use flowmimic_eval::protocols::SEGMENT_SETTLE;
 use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_serve::play::PlayConfig;
-use flowmimic_sim::Humanoid;
+use flowmimic_sim::{Humanoid, Obstacle};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -49,6 +49,10 @@ pub struct RunArgs {
     /// Pelvis goal in the world, `x,y` metres [default: 4.0,2.0].
     #[arg(long)]
     pub goal: Option<String>,
+    /// Solid obstacles, walked around by any task: a .toml or .json file (examples/obstacles.toml
+    /// says how) or inline cylinders `x,y,radius[@vx,vy];...` (world metres; @ moving at m/s).
+    #[arg(long)]
+    pub obstacles: Option<String>,
     #[command(flatten)]
     pub drive: DriveArgs,
     /// Simulated seconds (default: the joystick schedule's length, else 10 s).
@@ -257,6 +261,61 @@ pub(crate) fn schedule(text: &str) -> Result<Vec<JoystickSegment>> {
         .collect()
 }
 
+/// Obstacles from `--obstacles`: a file (`.toml`: `[[obstacle]]` tables; `.json`: a list) or
+/// inline cylinders `x,y,radius[@vx,vy]` separated by `;`.
+pub(crate) fn obstacles(spec: &str) -> Result<Vec<Obstacle>> {
+    let path = Path::new(spec);
+    let list: Vec<serde_json::Value> = match path.extension().and_then(|e| e.to_str()) {
+        Some("toml") => {
+            let text = flowmimic_io::read_to_string(path)?;
+            let file: toml::Table = toml::from_str(&text).with_context(|| format!("{spec}: not TOML"))?;
+            let keys: Vec<&String> = file.keys().filter(|k| *k != "obstacle").collect();
+            if !keys.is_empty() {
+                bail!("{spec}: unknown table or key {keys:?}: the file holds [[obstacle]] tables only");
+            }
+            let tables = file.get("obstacle").cloned().unwrap_or(toml::Value::Array(Vec::new()));
+            serde_json::to_value(tables)?
+                .as_array()
+                .cloned()
+                .with_context(|| format!("{spec}: use [[obstacle]] tables"))?
+        }
+        Some("json") => serde_json::from_str(&flowmimic_io::read_to_string(path)?)
+            .with_context(|| format!("{spec}: not a JSON list of obstacles"))?,
+        _ => {
+            return spec
+                .split(';')
+                .enumerate()
+                .map(|(i, one)| {
+                    let (place, velocity) = match one.split_once('@') {
+                        Some((p, v)) => (p, numbers(v, 2, "obstacle velocity")?),
+                        None => (one, vec![0.0, 0.0]),
+                    };
+                    let c = numbers(place, 3, "obstacle (x,y,radius[@vx,vy], or a .toml or .json file)")?;
+                    let o = Obstacle::cylinder([c[0], c[1]], c[2]).moving([velocity[0], velocity[1]]);
+                    o.validate().map_err(|e| anyhow::anyhow!("--obstacles {spec}: obstacle {}: {e}", i + 1))?;
+                    Ok(o)
+                })
+                .collect();
+        }
+    };
+    list.into_iter()
+        .enumerate()
+        .map(|(i, v)| {
+            let at = || format!("{spec}: obstacle {}", i + 1);
+            let unknown: Vec<&String> = match &v {
+                serde_json::Value::Object(m) => m.keys().filter(|k| !Obstacle::KEYS.contains(&k.as_str())).collect(),
+                _ => bail!("{}: not a table of an obstacle's keys", at()),
+            };
+            if !unknown.is_empty() {
+                bail!("{}: unknown key {unknown:?} (an obstacle has {:?})", at(), Obstacle::KEYS);
+            }
+            let o: Obstacle = serde_json::from_value(v).with_context(at)?;
+            o.validate().map_err(|e| anyhow::anyhow!("{}: {e}", at()))?;
+            Ok(o)
+        })
+        .collect()
+}
+
 impl RunArgs {
     /// The task's name, as its recommended settings are filed.
     pub fn task_name(&self) -> String {
@@ -289,6 +348,11 @@ impl RunArgs {
                 Task { waypoint: Some(goal()?), reach: Some((hand, target()?)), approach, ..Task::walk() }
             }
         };
+        let obstacles = match &self.obstacles {
+            Some(spec) => obstacles(spec)?,
+            None => Vec::new(),
+        };
+        let task = Task { obstacles, ..task };
         task.validate()?;
         let unused = |given: bool, flag: &str, uses: &[TaskKind]| {
             if given && !uses.contains(&self.task) {
@@ -467,6 +531,10 @@ pub(crate) fn print_outcome(o: &Outcome) {
             list(&closest, "m"),
             list(&last, "m")
         );
+    }
+    if let Some(touched) = &o.touched {
+        let n = touched.iter().filter(|&&t| t > 0).count();
+        println!("obstacles: touched in {n} of {} environments (control steps touching: {touched:?})", touched.len());
     }
     println!("{} of {} environments fell", o.fell, o.envs);
 }

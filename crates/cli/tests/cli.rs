@@ -502,3 +502,42 @@ fn the_demo_follows_its_joystick_schedule_and_touches_the_target() {
     let (success, text) = flowmimic(&dir, &args);
     assert!(!success && text.contains("no inverse.safetensors") && text.contains("--inverse-dynamics 0"), "{text}");
 }
+
+/// Obstacles from a file and from the command line are solid (MuJoCo's contacts, counted in the
+/// outcome and kept in the rollout); bad ones are refused naming the file, the obstacle and the
+/// problem; `eval forest` runs and reports every trial.
+#[test]
+fn obstacles_come_from_files_and_the_command_line() {
+    let dir = workdir("obstacles");
+    let example = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../examples/obstacles.toml");
+    let example = example.to_str().unwrap();
+    let args = ["run", "--task", "waypoint", "--goal", "8,0", "--obstacles", example, "--seconds", "3"];
+    let text = ok(&dir, &[&args[..], &["-o", "r.rollout.safetensors"]].concat());
+    assert!(text.contains("obstacles: touched in 0 of 1"), "{text}");
+    let again = ok(&dir, &["eval", "outcome", "r.rollout.safetensors"]);
+    assert!(again.contains("obstacles: touched in 0 of 1"), "the rollout keeps its obstacles:\n{again}");
+    // A post just ahead of a humanoid that walks on, unguided: it walks into it.
+    let text = ok(&dir, &["run", "--obstacles", "0.6,0,0.3", "--seconds", "2"]);
+    assert!(text.contains("obstacles: touched in 1 of 1"), "{text}");
+
+    let refused = |args: &[&str], words: &[&str]| {
+        let (success, text) = flowmimic(&dir, args);
+        assert!(!success, "{args:?} succeeded:\n{text}");
+        words.iter().for_each(|w| assert!(text.contains(w), "{args:?}: no '{w}' in:\n{text}"));
+    };
+    std::fs::write(dir.join("typo.toml"), "[[obstacle]]\ntype = \"cylinder\"\nradius = 0.3\nat = [1, 2]\ncolour = 1\n")
+        .unwrap();
+    refused(&["run", "--obstacles", "typo.toml"], &["typo.toml", "obstacle 1", "unknown key", "colour"]);
+    std::fs::write(
+        dir.join("cone.json"),
+        r#"[{"type": "cylinder", "radius": 0.3, "at": [1, 2]}, {"type": "cone", "at": [1, 1]}]"#,
+    )
+    .unwrap();
+    refused(&["run", "--obstacles", "cone.json"], &["cone.json", "obstacle 2", "cone"]);
+    refused(&["run", "--obstacles", "1,2"], &["expected 3 numbers"]);
+    refused(&["run", "--obstacles", "1,2,0.3;4,0,-1"], &["obstacle 2", "size -1"]);
+    refused(&["run", "--obstacles", "missing.toml"], &["missing.toml"]);
+
+    let text = ok(&dir, &["eval", "forest", "--quick", "--trials", "2", "-o", "forest"]);
+    assert!(text.contains("steps touching") && text.contains("| fm |"), "{text}");
+}

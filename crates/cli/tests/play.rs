@@ -178,6 +178,16 @@ impl Page {
             .clone()
     }
 
+    /// A left click on the ground at world `(x, y)`, where the page draws it.
+    fn click_ground(&mut self, x: f64, y: f64) {
+        let at = self.eval(&format!("play.screenOf([{x}, {y}, 0])"));
+        let (px, py) = (at[0].as_f64().unwrap(), at[1].as_f64().unwrap());
+        for kind in ["mouseMoved", "mousePressed", "mouseReleased"] {
+            let params = json!({"type": kind, "x": px, "y": py, "button": "left", "clickCount": 1});
+            self.call("Input.dispatchMouseEvent", params);
+        }
+    }
+
     fn key(&mut self, kind: &str, code: &str, key: &str, vk: u32) {
         let params = json!({"type": kind, "code": code, "key": key, "windowsVirtualKeyCode": vk});
         self.call("Input.dispatchKeyEvent", params);
@@ -216,7 +226,7 @@ impl Page {
 }
 
 /// Headless Chromium on the page: the page renders and streams, offers the inverse-dynamics
-/// share, W walks forward and S backward, R resets.
+/// share, W walks forward and S backward, R resets, and a clicked obstacle is walked around.
 #[test]
 fn live_play_steers_from_a_real_browser() {
     let Some(browser) = chromium() else {
@@ -289,5 +299,43 @@ fn live_play_steers_from_a_real_browser() {
     let before = page.eval("play.frame.time").as_f64().unwrap();
     page.key("keyDown", "KeyR", "r", 82);
     assert!(page.wait_for(&format!("play.frame.time < {before} - 1"), 2.0), "R did not reset");
+    page.key("keyUp", "KeyS", "s", 83);
+
+    // Clicks drop a waypoint 6 m ahead and an obstacle 2.5 m ahead, in the way: the humanoid
+    // walks around it to the waypoint without touching it (MuJoCo's contacts, streamed).
+    const AHEAD: &str = "(() => { const b = play.frame.bodies, l = b[1], r = b[5]; \
+        const yaw = Math.atan2(l[1] - r[1], l[0] - r[0]) - Math.PI / 2; return [b[0][0], b[0][1], yaw]; })()";
+    let start = page.eval(AHEAD);
+    let [x0, y0, yaw] = [0, 1, 2].map(|i| start[i].as_f64().unwrap());
+    let ahead = |d: f64| (x0 + d * yaw.cos(), y0 + d * yaw.sin());
+    let ((gx, gy), (ox, oy)) = (ahead(6.0), ahead(2.5));
+    page.eval("$('clickmode').value = 'waypoint'");
+    page.click_ground(gx, gy);
+    assert!(page.wait_for("play.frame.waypoint !== null", 3.0), "the waypoint click was not applied");
+    page.eval("$('clickmode').value = 'obstacle'");
+    page.click_ground(ox, oy);
+    assert!(page.wait_for("play.frame.obstacles.length === 1", 3.0), "the obstacle click was not applied");
+    let placed = page.eval("play.frame.obstacles[0].at");
+    let (px, py) = (placed[0].as_f64().unwrap(), placed[1].as_f64().unwrap());
+    // The camera follows the walker, which has set off toward the waypoint by the time the click
+    // lands: within 0.6 m of where it was aimed.
+    assert!((px - ox).hypot(py - oy) < 0.6, "the obstacle landed at ({px:.2}, {py:.2}), not ({ox:.2}, {oy:.2})");
+    let (mut touched, mut closest, mut passed) = (0, f64::INFINITY, false);
+    let started = Instant::now();
+    while started.elapsed().as_secs_f64() < 15.0 && !passed {
+        let f = page.eval("[play.frame.touching, play.frame.fell, play.frame.bodies[0][0], play.frame.bodies[0][1]]");
+        touched += usize::from(f[0] == json!(true));
+        assert!(f[1] == json!(false), "the humanoid fell");
+        let (x, y) = (f[2].as_f64().unwrap(), f[3].as_f64().unwrap());
+        closest = closest.min((x - px).hypot(y - py) - 0.3);
+        // Past the obstacle: 1 m beyond it along the way.
+        passed = (x - x0) * yaw.cos() + (y - y0) * yaw.sin() > 3.5;
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    eprintln!(
+        "around the obstacle: passed {passed}, pelvis's closest approach to its edge {closest:.2} m, {touched} frames touching"
+    );
+    assert!(passed, "did not get past the obstacle in 15 s");
+    assert_eq!(touched, 0, "the humanoid touched the obstacle (pelvis came within {closest:.2} m of its edge)");
     std::fs::remove_dir_all(&dir).ok();
 }

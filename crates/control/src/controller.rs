@@ -10,7 +10,7 @@ use crate::{ControlError, Layout};
 use flowmimic_geom::CharFrame;
 use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
 use flowmimic_motion::Clip;
-use flowmimic_sim::{CONTROL_HZ, Env, Humanoid, NUM_DOFS};
+use flowmimic_sim::{CONTROL_HZ, Env, Humanoid, NUM_DOFS, Obstacle};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
@@ -269,6 +269,13 @@ impl<'m> Controller<'m> {
         self.plans[e].as_ref().map(|p| p.0.as_slice())
     }
 
+    /// Puts environment `e` in a world with `obstacles` (world frame; they replace any it had),
+    /// keeping its state: a model of its own is compiled (milliseconds).
+    pub fn place_obstacles(&mut self, e: usize, obstacles: &[Obstacle]) -> Result<(), ControlError> {
+        let world = self.envs[e].humanoid().with_obstacles(obstacles)?;
+        Ok(self.envs[e].enter(world)?)
+    }
+
     /// A planar root-velocity push on environment `e` now (m/s, world frame).
     pub fn kick(&mut self, e: usize, velocity: [f64; 2]) -> Result<(), ControlError> {
         Ok(self.envs[e].kick(velocity)?)
@@ -420,6 +427,9 @@ pub fn run(
         task.validate()?;
     }
     let mut controller = Controller::new(model, humanoid, clip, tasks.len(), config)?;
+    for (e, task) in tasks.iter().enumerate().filter(|(_, t)| !t.obstacles.is_empty()) {
+        controller.place_obstacles(e, &task.obstacles)?;
+    }
     let envs_n = tasks.len();
     let steps = (config.seconds * CONTROL_HZ).round() as usize;
     let mut out = Rollout::new(
@@ -437,7 +447,7 @@ pub fn run(
         let outcome = controller.step(&tasks, time)?;
         for (e, a) in outcome.actions.iter().enumerate() {
             if let Some(a) = a {
-                out.record_action(e, step, a, &tasks[e].command(time));
+                out.record_action(e, step, a, &tasks[e].command(time), controller.env(e).touching_obstacle());
             }
         }
         for &e in &outcome.fell {

@@ -8,13 +8,15 @@
 //! - [`adapt`]: adaptive guidance, a scale that follows the executed error;
 //! - [`recommended`]: a model directory's measured best settings per task;
 //! - [`costs`]: joystick velocity (paper eq. 7) and heading, end-effector reach (eq. 8),
-//!   waypoint navigation (BeyondMimic), and weighted sums.
+//!   waypoint navigation (BeyondMimic), and weighted sums;
+//! - [`obstacles`]: keeping plans clear of obstacles, and the detour a waypoint takes around them.
 
 pub mod adapt;
 pub mod controller;
 pub mod costs;
 pub mod history;
 pub mod layout;
+pub mod obstacles;
 pub mod recommended;
 pub mod rollout;
 pub mod task;
@@ -38,6 +40,8 @@ pub enum ControlError {
     Sampler(String),
     #[error("the model produced a non-finite action (environment {env}, step {step}, hinge {index})")]
     NonFinite { env: usize, step: usize, index: usize },
+    #[error("bad obstacle: {0}")]
+    Obstacle(String),
     #[error(transparent)]
     Sim(#[from] flowmimic_sim::SimError),
 }

@@ -8,6 +8,7 @@
 //! | `body_pos`| E x (T+1) x 24 x 3 | world positions of the 24 bodies (pelvis first)           |
 //! | `action`  | E x T x 69       | executed normalised actions                                 |
 //! | `command` | E x T x 8        | joystick (vx, vy, yaw rate), hand target xyz, waypoint xy   |
+//! | `contact` | E x T            | 1 where the humanoid touched an obstacle during the step     |
 //! | `steps`   | E                | control steps survived (T unless the humanoid fell)         |
 //! | `model_ms`, `physics_ms` | T | wall time per control step for the whole batch            |
 //!
@@ -114,6 +115,8 @@ pub struct Rollout {
     pub body_pos: Vec<f32>,
     pub action: Vec<f32>,
     pub command: Vec<f32>,
+    /// 1 where the humanoid touched an obstacle during the step (E x T; files before it: 0).
+    pub contact: Vec<f32>,
     pub survived: Vec<usize>,
     pub model_ms: Vec<f32>,
     pub physics_ms: Vec<f32>,
@@ -133,6 +136,7 @@ impl Rollout {
             body_pos: vec![0.0; envs * (steps + 1) * NUM_BODIES * 3],
             action: vec![0.0; envs * steps * NUM_DOFS],
             command: vec![0.0; envs * steps * COMMAND_DIM],
+            contact: vec![0.0; envs * steps],
             survived: vec![steps; envs],
             model_ms: Vec::with_capacity(steps),
             physics_ms: Vec::with_capacity(steps),
@@ -152,9 +156,11 @@ impl Rollout {
         self.body_pos[at * NUM_BODIES * 3..(at + 1) * NUM_BODIES * 3].copy_from_slice(&row.body_pos);
     }
 
-    /// Writes the action executed and the command in force at step `k` (0..T) of environment `e`.
-    pub fn record_action(&mut self, e: usize, k: usize, action: &[f32], command: &[f32; COMMAND_DIM]) {
+    /// Writes the action executed and the command in force at step `k` (0..T) of environment
+    /// `e`, and whether it touched an obstacle.
+    pub fn record_action(&mut self, e: usize, k: usize, action: &[f32], command: &[f32; COMMAND_DIM], touched: bool) {
         let at = e * self.steps + k;
+        self.contact[at] = f32::from(u8::from(touched));
         self.action[at * NUM_DOFS..(at + 1) * NUM_DOFS].copy_from_slice(action);
         self.command[at * COMMAND_DIM..(at + 1) * COMMAND_DIM].copy_from_slice(command);
     }
@@ -198,6 +204,11 @@ impl Rollout {
         &self.command[at..at + COMMAND_DIM]
     }
 
+    /// Control steps in which environment `e` touched an obstacle.
+    pub fn contact_steps(&self, e: usize) -> usize {
+        self.contact[e * self.steps..(e + 1) * self.steps].iter().filter(|&&c| c > 0.0).count()
+    }
+
     /// Whether environment `e` fell before the end.
     pub fn fell(&self, e: usize) -> bool {
         self.survived[e] < self.steps
@@ -238,6 +249,7 @@ impl Rollout {
                 ("body_pos", vec![e, t + 1, NUM_BODIES, 3], &self.body_pos),
                 ("action", vec![e, t, NUM_DOFS], &self.action),
                 ("command", vec![e, t, COMMAND_DIM], &self.command),
+                ("contact", vec![e, t], &self.contact),
                 ("steps", vec![e], &survived),
                 ("model_ms", vec![t], &self.model_ms),
                 ("physics_ms", vec![t], &self.physics_ms),
@@ -282,6 +294,10 @@ impl Rollout {
             body_pos: file.f32("body_pos", &[envs, t + 1, NUM_BODIES, 3])?,
             action: file.f32("action", &[envs, t, NUM_DOFS])?,
             command: file.f32("command", &[envs, t, COMMAND_DIM])?,
+            contact: match file.shape("contact") {
+                Ok(_) => file.f32("contact", &[envs, t])?,
+                Err(_) => vec![0.0; envs * t],
+            },
             survived,
             model_ms: file.f32("model_ms", &[t])?,
             physics_ms: file.f32("physics_ms", &[t])?,

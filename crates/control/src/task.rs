@@ -3,8 +3,10 @@
 
 use crate::adapt::Recent;
 use crate::costs::{Heading, Joystick, Pursuit, Reach, Sum};
+use crate::obstacles::{Avoid, in_frame, world_detour};
 use crate::{ControlError, Layout};
 use flowmimic_geom::{CharFrame, DVec3, wrap_angle};
+use flowmimic_sim::Obstacle;
 use flowmimic_sim::skeleton::body;
 use serde::{Deserialize, Serialize};
 
@@ -65,6 +67,13 @@ pub struct Task {
     pub approach: bool,
     /// Relative weights of the joystick, heading, reach and waypoint costs.
     pub weights: [f32; 4],
+    /// Solid obstacles (world frame): placed in the simulator, kept clear of by the plans
+    /// ([`Avoid`], weighted as the waypoint) and walked around by the waypoint's pursuit.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub obstacles: Vec<Obstacle>,
+    /// The obstacles are solid but guidance ignores them (the baseline of `eval forest`).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub blind: bool,
 }
 
 /// Width of the per-step command record: joystick (vx, vy, yaw rate), hand target (x, y, z),
@@ -104,6 +113,9 @@ impl Task {
         }
         if let Some(goal) = self.waypoint {
             check_world(&goal)?;
+        }
+        if let Some(e) = self.obstacles.iter().find_map(|o| o.validate().err()) {
+            return Err(ControlError::Obstacle(e));
         }
         match self.weights.iter().find(|w| !w.is_finite() || **w < 0.0) {
             Some(w) => Err(ControlError::BadCommand { what: "task weight", value: f64::from(*w) }),
@@ -164,24 +176,34 @@ impl Task {
         if let Some((hand, target)) = self.reach {
             sum = sum.with(wr, Reach::world(layout, hand.body(), target, frame)?);
         }
-        if let Some(goal) = self.pelvis_goal(frame) {
+        if let Some(goal) = self.pelvis_goal(frame, time) {
             let to = Pursuit::world(goal, frame)?;
             sum = sum.with(ww, Joystick::turning(layout, to.speed, to.lateral, to.yaw_rate)?);
             sum = sum.with(ww, Heading::new(layout, to.yaw_rate)?);
         }
+        if self.avoids() {
+            sum = sum.with(ww * Avoid::WEIGHT, Avoid::new(layout, in_frame(&self.obstacles, frame, time))?);
+        }
         Ok((!sum.terms.is_empty()).then_some(sum))
     }
 
+    /// Whether guidance keeps clear of obstacles (there are some, and the task is not blind).
+    pub fn avoids(&self) -> bool {
+        !self.obstacles.is_empty() && !self.blind
+    }
+
     /// Where the task's pursuit command leads the pelvis (world x, y), seen from the current root
-    /// pose `frame`: the waypoint, or with [`Task::approach`] the point that brings the hand to
-    /// its target (within [`Task::WAYPOINT_RADIUS`] of a waypoint); `None` when it asks neither.
-    pub fn pelvis_goal(&self, frame: &CharFrame) -> Option<[f64; 2]> {
-        match (self.reach, self.waypoint) {
+    /// pose `frame` at `time`: the waypoint, or with [`Task::approach`] the point that brings the
+    /// hand to its target (within [`Task::WAYPOINT_RADIUS`] of a waypoint), by way of a detour
+    /// around the obstacles ([`world_detour`]); `None` when it asks neither.
+    pub fn pelvis_goal(&self, frame: &CharFrame, time: f64) -> Option<[f64; 2]> {
+        let goal = match (self.reach, self.waypoint) {
             (Some((hand, target)), waypoint) if self.approach => {
                 Some(aim_point(hand, [target[0], target[1]], waypoint, frame))
             }
             (_, waypoint) => waypoint,
-        }
+        }?;
+        Some(if self.avoids() { world_detour(goal, &self.obstacles, frame, time) } else { goal })
     }
 
     /// How far the humanoid's executed motion is from the joystick command at `time`, in the

@@ -213,15 +213,15 @@ fn walking_up_to_a_hand_target_leads_the_pelvis_beside_it() {
     let frame = CharFrame::new(DVec3::new(2.0, 3.0, 0.9), std::f64::consts::FRAC_PI_2);
     let reach = Some((Hand::Right, [4.0, 6.0, 0.8]));
     let task = Task { reach, approach: true, ..Task::walk() };
-    let [x, y] = task.pelvis_goal(&frame).unwrap();
+    let [x, y] = task.pelvis_goal(&frame, 0.0).unwrap();
     assert!((x - 3.92).abs() < 1e-9 && (y - 5.89).abs() < 1e-9, "{x} {y}");
     // Without the approach the hand's cost alone pulls: no pursuit.
-    assert_eq!(Task { approach: false, ..task.clone() }.pelvis_goal(&frame), None);
+    assert_eq!(Task { approach: false, ..task.clone() }.pelvis_goal(&frame, 0.0), None);
     // With a waypoint 1 m from that point, the pelvis is led to within 0.4 m of the waypoint,
     // on the line toward it.
     let task = Task { waypoint: Some([3.92, 4.89]), ..task };
-    let [x, y] = task.pelvis_goal(&frame).unwrap();
+    let [x, y] = task.pelvis_goal(&frame, 0.0).unwrap();
     assert!((x - 3.92).abs() < 1e-9 && (y - 5.29).abs() < 1e-9, "{x} {y}");
     // Without the approach the waypoint itself.
-    assert_eq!(Task { approach: false, ..task }.pelvis_goal(&frame), Some([3.92, 4.89]));
+    assert_eq!(Task { approach: false, ..task }.pelvis_goal(&frame, 0.0), Some([3.92, 4.89]));
 }

@@ -3,7 +3,9 @@
 //! from a library ([`Study`] holds what every experiment shares).
 
 use crate::outcome::{FOLLOWED_SPEED, FOLLOWED_YAW_RATE, followed};
-use crate::protocols::{self, Bench, Point, ReachSetup, SEGMENT_SETTLE};
+use crate::protocols::{
+    self, Bench, FOREST_CLEAR, FOREST_SECONDS, FOREST_WIDTH, ForestSetup, Point, ReachSetup, SEGMENT_SETTLE,
+};
 use crate::sweep::{EvalModel, Experiment, Result, Rows, Summary, finish, sweep};
 use crate::{frechet_distance, gaussian};
 use flowmimic_control::{Adaptive, Hand, JoystickSegment, StepReport, Task};
@@ -43,7 +45,16 @@ pub struct Study<'a> {
     pub adaptive: Option<Adaptive>,
     /// Share of the executed action taken from inverse dynamics (0: the plan's own).
     pub inverse_dynamics: f32,
+    /// Where each point's rollout is written when its trials run (`None`: nowhere; stored
+    /// points are not run again).
+    pub rollouts: Option<&'a Path>,
     pub progress: &'a WithProgress<'a>,
+}
+
+/// The mean time to arrive of the trials that arrived (s), or a dash when none did.
+fn time_to_arrive(s: &Summary) -> String {
+    let seconds = s.mean["seconds"];
+    if seconds.is_nan() { "—".to_string() } else { format!("{seconds:.1}") }
 }
 
 /// `1.0` for true, so falls and successes average into rates.
@@ -54,6 +65,11 @@ fn rate(b: bool) -> f64 {
 impl Study<'_> {
     fn trials(&self, full: usize, quick: usize) -> usize {
         self.trials.unwrap_or(if self.quick { quick } else { full }).max(1)
+    }
+
+    /// The protocols' bench for model `m`.
+    fn bench<'m>(&'m self, m: &'m EvalModel) -> Bench<'m> {
+        m.bench(self.humanoid, self.clip, self.rollouts)
     }
 
     fn point(&self, nfe: usize, scale: f32) -> Point {
@@ -104,7 +120,7 @@ impl Study<'_> {
             self.out,
             self.models,
             (&self.by_scale(scales, nfe), trials, false),
-            |m, point| (self.progress)(steps, &|report| rows(&m.bench(self.humanoid, self.clip), point, report)),
+            |m, point| (self.progress)(steps, &|report| rows(&self.bench(m), point, report)),
             row,
         )?;
         finish(self.out, self.models, (exp.name, exp.title), &notes, &summaries, table)
@@ -134,8 +150,7 @@ impl Study<'_> {
             (&self.by_nfe(nfe), trials, true),
             |m, point| {
                 (self.progress)(steps, &|report| {
-                    let survived =
-                        protocols::survival(&m.bench(self.humanoid, self.clip), point, trials, seconds, report)?;
+                    let survived = protocols::survival(&self.bench(m), point, trials, seconds, report)?;
                     Ok(survived.iter().map(|&s| vec![s as f64]).collect())
                 })
             },
@@ -329,17 +344,95 @@ impl Study<'_> {
                     .collect())
             },
             |m, s, _| {
-                // No trial arrived: there is no time to average.
-                let seconds = s.mean["seconds"];
-                let seconds = if seconds.is_nan() { "—".to_string() } else { format!("{seconds:.1}") };
                 format!(
-                    "| {} | {} | {:.0}% | {:.2} | {seconds} | {:.2} | {:.0}% |",
+                    "| {} | {} | {:.0}% | {:.2} | {} | {:.2} | {:.0}% |",
                     m.label,
                     s.scale,
                     100.0 * s.mean["arrived"],
                     s.mean["closest"],
+                    time_to_arrive(s),
                     s.mean["last"],
                     100.0 * s.mean["fell"]
+                )
+            },
+            &notes,
+        )
+    }
+
+    /// Walking through a forest of obstacles to a goal: success rate against guidance scale,
+    /// and each trial's collisions, fall and time to the goal.
+    pub fn forest(&self, scales: &[f32], nfe: usize, setup: ForestSetup) -> Result<()> {
+        let trials = self.trials(20, 4);
+        let world = if setup.moving { "moving" } else { "standing" };
+        let exp = Experiment {
+            name: if setup.blind { "forest-blind" } else { "forest" },
+            settings: self
+                .settings(&format!("{world}; blind {}; clear {FOREST_CLEAR}; width {FOREST_WIDTH}", setup.blind)),
+            title: "Through a forest to a goal",
+            columns: &["success", "arrived", "contacts", "fell", "seconds", "obstacles"],
+            plot: "success",
+            x_label: "guidance scale w",
+            y_label: "success rate",
+            header: "| model | w | success | arrived | touched an obstacle | falls | time to goal (s) |\n|---|---|---|---|---|---|---|",
+        };
+        let world = match setup.moving {
+            true => {
+                "2-3 cylinders of radius 0.3-0.4 m crossing the way at 0.5-1.0 m/s, each where a walker at 0.8 m/s meets it"
+            }
+            false => &format!(
+                "10-20 standing cylinders of radius 0.2-0.5 m within {FOREST_WIDTH} m of the way and {FOREST_CLEAR} m of the \
+                 start and the goal, at least 1 m apart"
+            ),
+        };
+        let blind = match setup.blind {
+            true => " Baseline: guidance ignores the obstacles (the waypoint's pursuit alone); they are still solid.",
+            false => "",
+        };
+        let notes = format!(
+            "Goal 8-10 m straight ahead; {world}; {FOREST_SECONDS} s; success when the pelvis comes within 0.5 m of the goal \
+             with no contact (MuJoCo's) between the humanoid and an obstacle and no fall; time to the goal averaged over the \
+             trials that arrive; NFE {nfe}, {trials} trials.{blind}"
+        );
+        let steps = (FOREST_SECONDS * flowmimic_sim::CONTROL_HZ) as usize;
+        self.guided_sweep(
+            &exp,
+            (scales, nfe, trials, steps),
+            |bench, point, report| {
+                let r = protocols::forest(bench, point, setup, trials, report)?;
+                eprintln!("trial  obstacles  success  arrived (s)  steps touching  fell");
+                for (i, t) in r.iter().enumerate() {
+                    let arrived = t.arrival.map_or("-".to_string(), |a| format!("{a:.1}"));
+                    eprintln!(
+                        "{i:>5}  {:>9}  {:>7}  {arrived:>11}  {:>14}  {}",
+                        t.obstacles,
+                        if t.success() { "yes" } else { "no" },
+                        t.contact_steps,
+                        if t.fell { "yes" } else { "no" }
+                    );
+                }
+                Ok(r.iter()
+                    .map(|t| {
+                        vec![
+                            rate(t.success()),
+                            rate(t.arrival.is_some()),
+                            rate(t.contact_steps > 0),
+                            rate(t.fell),
+                            t.arrival.unwrap_or(f64::NAN),
+                            t.obstacles as f64,
+                        ]
+                    })
+                    .collect())
+            },
+            |m, s, _| {
+                format!(
+                    "| {} | {} | {:.0}% | {:.0}% | {:.0}% | {:.0}% | {} |",
+                    m.label,
+                    s.scale,
+                    100.0 * s.mean["success"],
+                    100.0 * s.mean["arrived"],
+                    100.0 * s.mean["contacts"],
+                    100.0 * s.mean["fell"],
+                    time_to_arrive(s)
                 )
             },
             &notes,
@@ -420,13 +513,7 @@ impl Study<'_> {
             (&self.by_nfe(nfe), 1, true),
             |m, point| {
                 (self.progress)(steps, &|report| {
-                    let f = protocols::generated_features(
-                        &m.bench(self.humanoid, self.clip),
-                        point,
-                        trials,
-                        seconds,
-                        report,
-                    )?;
+                    let f = protocols::generated_features(&self.bench(m), point, trials, seconds, report)?;
                     let (gm, gs) = gaussian(&f);
                     Ok(vec![vec![frechet_distance(&gm, &gs, &rm, &rs)]])
                 })
@@ -467,7 +554,7 @@ impl Study<'_> {
             self.models,
             (&points, 1, true),
             |m, point| {
-                let (model_ms, physics_ms) = protocols::latency(&m.bench(self.humanoid, self.clip), point, 3.0)?;
+                let (model_ms, physics_ms) = protocols::latency(&self.bench(m), point, 3.0)?;
                 Ok(vec![vec![model_ms, physics_ms, model_ms + physics_ms]])
             },
             |m, s, _| {
@@ -525,7 +612,7 @@ impl Study<'_> {
                             adaptive: None,
                             inverse_dynamics: 0.0,
                         };
-                        let e = protocols::guidance_effect(&m.bench(self.humanoid, self.clip), task, point, samples)?;
+                        let e = protocols::guidance_effect(&self.bench(m), task, point, samples)?;
                         let g = serde_json::to_string(&gradient)?;
                         println!(
                             "{:<10} {:<36} {:<16} {:>6} {:>10.4} {:>10.4} {:>7.2} {:>10.3} {:>10.3}",

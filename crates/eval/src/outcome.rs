@@ -1,6 +1,6 @@
 //! What a rollout achieved for its task, environment by environment: each joystick segment's
 //! achieved speeds against the asked ones (and in how many environments it was followed), the
-//! hand's closest approach to its target, the pelvis's way to its goal. `flowmimic run` prints
+//! hand's closest approach to its target, the pelvis's way to its goal, obstacles touched. `flowmimic run` prints
 //! it after a run and `flowmimic eval outcome` for a saved rollout, so that one failing segment
 //! or environment cannot hide behind an average.
 
@@ -35,6 +35,8 @@ pub struct Outcome {
     /// Per environment with a hand target, and with a waypoint.
     pub reach: Vec<ReachTrial>,
     pub waypoint: Vec<WaypointTrial>,
+    /// Control steps each environment touched an obstacle (`None`: no task has obstacles).
+    pub touched: Option<Vec<usize>>,
 }
 
 /// Whether an achieved segment follows its command.
@@ -65,6 +67,12 @@ impl Outcome {
             segments,
             reach: (0..r.envs).filter_map(|e| reach_trial(r, e)).collect(),
             waypoint: (0..r.envs).filter_map(|e| waypoint_trial(r, e)).collect(),
+            touched: r
+                .info
+                .tasks
+                .iter()
+                .any(|t| !t.obstacles.is_empty())
+                .then(|| (0..r.envs).map(|e| r.contact_steps(e)).collect()),
         }
     }
 }

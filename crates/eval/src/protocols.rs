@@ -8,10 +8,11 @@ use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_sim::skeleton::body;
 use flowmimic_sim::state::offset;
-use flowmimic_sim::{CONTROL_HZ, Humanoid};
+use flowmimic_sim::{CONTROL_HZ, Humanoid, Obstacle};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
+use std::path::Path;
 use std::sync::Arc;
 
 /// What every protocol needs: the model, the humanoid and the clip the trials start from.
@@ -20,6 +21,8 @@ pub struct Bench<'a> {
     pub humanoid: &'a Arc<Humanoid>,
     pub clip: &'a Clip,
     pub name: &'a str,
+    /// Where each protocol run writes its rollout (`None`: nowhere).
+    pub rollouts: Option<&'a Path>,
 }
 
 /// Sampler settings of one evaluated point.
@@ -50,6 +53,7 @@ fn is_zero(share: &f32) -> bool {
 impl Bench<'_> {
     fn run(
         &self,
+        protocol: &str,
         tasks: Vec<Task>,
         point: Point,
         seconds: f64,
@@ -70,7 +74,18 @@ impl Bench<'_> {
             kick_every: if kicks { 1.0 } else { 0.0 },
             kick_max: if kicks { 0.5 } else { 0.0 },
         };
-        controller::run(self.model, self.humanoid, self.clip, tasks, &config, self.name, on_step)
+        let r = controller::run(self.model, self.humanoid, self.clip, tasks, &config, self.name, on_step)?;
+        if let Some(dir) = self.rollouts {
+            let file = format!(
+                "{}-{protocol}-nfe{}-w{}-seed{}.rollout.safetensors",
+                self.name, point.nfe, point.scale, point.seed
+            );
+            let saved = std::fs::create_dir_all(dir).map_err(|e| e.to_string());
+            if let Err(e) = saved.and_then(|()| r.save(&dir.join(&file)).map_err(|e| e.to_string())) {
+                return Err(ControlError::Start(format!("cannot write the rollout {file} in {}: {e}", dir.display())));
+            }
+        }
+        Ok(r)
     }
 
     /// The world pose (x, y, heading) environment `e` starts from.
@@ -96,7 +111,7 @@ pub fn survival(
     cap_seconds: f64,
     on_step: impl FnMut(&StepReport),
 ) -> Result<Vec<usize>, ControlError> {
-    let rollout = bench.run(vec![Task::walk(); trials], point, cap_seconds, true, on_step)?;
+    let rollout = bench.run("survival", vec![Task::walk(); trials], point, cap_seconds, true, on_step)?;
     Ok(rollout.survived)
 }
 
@@ -128,7 +143,7 @@ pub fn joystick(
 ) -> Result<Vec<JoystickTrial>, ControlError> {
     let task = Task::joystick_eval();
     let seconds = task.schedule_seconds();
-    let r = bench.run(vec![task; trials], point, seconds, false, on_step)?;
+    let r = bench.run("joystick", vec![task; trials], point, seconds, false, on_step)?;
     Ok((0..trials).map(|e| joystick_trial(&r, e)).collect())
 }
 
@@ -229,7 +244,7 @@ pub fn reach(
             Task { reach: Some((Hand::Right, [t.x, t.y, local.z])), approach: setup.approach, ..Task::walk() }
         })
         .collect();
-    let r = bench.run(tasks, point, 4.0, false, on_step)?;
+    let r = bench.run("reach", tasks, point, 4.0, false, on_step)?;
     Ok((0..trials).map(|e| reach_trial(&r, e).expect("reach task")).collect())
 }
 
@@ -278,7 +293,7 @@ pub fn waypoint(
             Task { waypoint: Some([goal.x, goal.y]), ..Task::walk() }
         })
         .collect();
-    let r = bench.run(tasks, point, 10.0, false, on_step)?;
+    let r = bench.run("waypoint", tasks, point, 10.0, false, on_step)?;
     Ok((0..trials).map(|e| waypoint_trial(&r, e).expect("waypoint task")).collect())
 }
 
@@ -290,6 +305,127 @@ pub fn waypoint_trial(r: &Rollout, e: usize) -> Option<WaypointTrial> {
     let arrival = distances.iter().position(|&d| d <= 0.5).map(|k| (k + 1) as f64 / CONTROL_HZ);
     let last = distances.last().copied().unwrap_or(f64::NAN);
     Some(WaypointTrial { closest, arrival, last, fell: r.fell(e) })
+}
+
+/// The forest protocol's two worlds: standing cylinders between the start and the goal, or a
+/// few crossing the way.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ForestSetup {
+    /// 2-3 cylinders crossing the way at 0.5-1.0 m/s instead of 10-20 standing ones.
+    pub moving: bool,
+    /// Guidance ignores the obstacles (they stay solid): the baseline.
+    pub blind: bool,
+}
+
+/// One forest trial: arrival (pelvis within 0.5 m of the goal), control steps touching an
+/// obstacle, fall; success is arrival with neither.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ForestTrial {
+    pub arrival: Option<f64>,
+    pub closest: f64,
+    pub contact_steps: usize,
+    pub fell: bool,
+    pub obstacles: usize,
+}
+
+impl ForestTrial {
+    pub fn success(&self) -> bool {
+        self.arrival.is_some() && self.contact_steps == 0 && !self.fell
+    }
+}
+
+/// How far (m) from the start and the goal no obstacle stands (centres): the walker starts
+/// at walking speed, and turns slowly (at 1.5 m, 30% of the trials touched the first obstacles
+/// within 4 s: docs/obstacles.md).
+pub const FOREST_CLEAR: f64 = 2.0;
+
+/// How far (m) to either side of the line from the start to the goal the forest reaches.
+pub const FOREST_WIDTH: f64 = 4.0;
+
+/// Seconds a forest trial lasts.
+pub const FOREST_SECONDS: f64 = 20.0;
+
+/// A forest in the start frame: the goal `distance` m straight ahead and 10-20 cylinders of
+/// radius 0.2-0.5 m, centred [`FOREST_CLEAR`] m or more from the start and the goal and within
+/// [`FOREST_WIDTH`] of the line between them, every two at least 1 m apart edge to edge (a way through: the
+/// walker is 0.5 m wide); or, `moving`, 2-3 cylinders of radius 0.3-0.4 m that cross the line at 0.5-1.0
+/// m/s, each where a walker at 0.8 m/s would meet it.
+pub fn forest_layout(rng: &mut StdRng, distance: f64, moving: bool) -> Vec<Obstacle> {
+    if moving {
+        let n = rng.random_range(2..=3);
+        return (0..n)
+            .map(|i| {
+                // Spread along the way, each crossing from a side drawn at random.
+                let x = 2.5 + (distance - 5.0) * (f64::from(i) + rng.random_range(0.2..0.8)) / f64::from(n);
+                let (speed, side) = (rng.random_range(0.5..1.0), if rng.random_bool(0.5) { 1.0 } else { -1.0 });
+                let meet = x / 0.8;
+                Obstacle::cylinder([x, side * speed * meet], rng.random_range(0.3..0.4)).moving([0.0, -side * speed])
+            })
+            .collect();
+    }
+    let n = rng.random_range(10..=20);
+    let mut placed: Vec<Obstacle> = Vec::with_capacity(n);
+    for _ in 0..10_000 {
+        if placed.len() == n {
+            break;
+        }
+        let c = Obstacle::cylinder(
+            [rng.random_range(FOREST_CLEAR..distance - FOREST_CLEAR), rng.random_range(-FOREST_WIDTH..FOREST_WIDTH)],
+            rng.random_range(0.2..0.5),
+        );
+        let apart = placed.iter().all(|o| {
+            let gap = (o.at[0] - c.at[0]).hypot(o.at[1] - c.at[1]) - o.bounding_radius() - c.bounding_radius();
+            gap >= 1.0
+        });
+        if apart {
+            placed.push(c);
+        }
+    }
+    placed
+}
+
+/// The forest (Diffuse-CLoC's test): walk to a goal 8-10 m ahead through [`forest_layout`]'s
+/// obstacles in [`FOREST_SECONDS`]; the obstacles are solid MuJoCo geoms.
+pub fn forest(
+    bench: &Bench,
+    point: Point,
+    setup: ForestSetup,
+    trials: usize,
+    on_step: impl FnMut(&StepReport),
+) -> Result<Vec<ForestTrial>, ControlError> {
+    let mut rng = StdRng::seed_from_u64(point.seed ^ 0xF0E5);
+    let tasks: Vec<Task> = (0..trials)
+        .map(|e| {
+            let distance = rng.random_range(8.0..10.0);
+            let goal = bench.start_to_world(e, DVec3::new(distance, 0.0, 0.0));
+            let (origin, yaw) = bench.start_pose(e);
+            let obstacles = forest_layout(&mut rng, distance, setup.moving)
+                .into_iter()
+                .map(|o| {
+                    let at = origin + yaw_quat(yaw) * DVec3::new(o.at[0], o.at[1], 0.0);
+                    let v = yaw_quat(yaw) * DVec3::new(o.velocity[0], o.velocity[1], 0.0);
+                    Obstacle { at: [at.x, at.y], velocity: [v.x, v.y], ..o }
+                })
+                .collect();
+            Task { waypoint: Some([goal.x, goal.y]), obstacles, blind: setup.blind, ..Task::walk() }
+        })
+        .collect();
+    let name =
+        format!("forest{}{}", if setup.moving { "-moving" } else { "" }, if setup.blind { "-blind" } else { "" });
+    let r = bench.run(&name, tasks, point, FOREST_SECONDS, false, on_step)?;
+    Ok((0..trials)
+        .map(|e| {
+            let w = waypoint_trial(&r, e).expect("waypoint task");
+            let obstacles = r.info.tasks[e].obstacles.len();
+            ForestTrial {
+                arrival: w.arrival,
+                closest: w.closest,
+                contact_steps: r.contact_steps(e),
+                fell: w.fell,
+                obstacles,
+            }
+        })
+        .collect())
 }
 
 /// One composition trial: closest approach to the waypoint and the hand target, and success.
@@ -323,7 +459,7 @@ pub fn compose(
             Task { waypoint: Some([goal.x, goal.y]), reach, approach: setup.approach, ..Task::walk() }
         })
         .collect();
-    let r = bench.run(tasks, point, 10.0, false, on_step)?;
+    let r = bench.run("compose", tasks, point, 10.0, false, on_step)?;
     Ok((0..trials)
         .map(|e| {
             let task = &r.info.tasks[e];
@@ -360,7 +496,7 @@ pub fn generated_features(
     seconds: f64,
     on_step: impl FnMut(&StepReport),
 ) -> Result<Vec<Vec<f64>>, ControlError> {
-    let r = bench.run(vec![Task::walk(); trials], point, seconds, false, on_step)?;
+    let r = bench.run("quality", vec![Task::walk(); trials], point, seconds, false, on_step)?;
     Ok((0..trials)
         .flat_map(|e| (1..=r.survived[e]).map(move |k| (e, k)))
         .map(|(e, k)| quality_features(r.state(e, k)))
@@ -372,7 +508,7 @@ pub fn generated_features(
 /// network when the point says so, included in the model's time).
 pub fn latency(bench: &Bench, point: Point, seconds: f64) -> Result<(f64, f64), ControlError> {
     let task = if point.scale > 0.0 { Task::joystick_eval() } else { Task::walk() };
-    let r = bench.run(vec![task], point, seconds, false, |_| {})?;
+    let r = bench.run("latency", vec![task], point, seconds, false, |_| {})?;
     let (model_ms, physics_ms) = r.median_ms();
     Ok((f64::from(model_ms), f64::from(physics_ms)))
 }

@@ -48,8 +48,9 @@ impl EvalModel {
         Ok(Self { label: label.to_string(), dir: dir.into(), model, content, inverse_content })
     }
 
-    pub fn bench<'a>(&'a self, humanoid: &'a Arc<Humanoid>, clip: &'a Clip) -> Bench<'a> {
-        Bench { model: &self.model, humanoid, clip, name: &self.label }
+    /// The protocols' bench for this model; each run's rollout is written in `rollouts`, if given.
+    pub fn bench<'a>(&'a self, humanoid: &'a Arc<Humanoid>, clip: &'a Clip, rollouts: Option<&'a Path>) -> Bench<'a> {
+        Bench { model: &self.model, humanoid, clip, name: &self.label, rollouts }
     }
 }
 

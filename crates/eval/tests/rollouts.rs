@@ -36,6 +36,7 @@ fn rollout(steps: usize, yaw_rate: f64, turn: f64, fall: usize) -> Rollout {
         body_pos: vec![0.0; (steps + 1) * NUM_BODIES * 3],
         action: vec![0.0; steps * NUM_DOFS],
         command: Vec::new(),
+        contact: vec![0.0; steps],
         survived: vec![fall],
         model_ms: vec![1.0; steps],
         physics_ms: vec![1.0; steps],

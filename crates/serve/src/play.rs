@@ -36,7 +36,7 @@ use flowmimic_model::TrajectoryModel;
 use flowmimic_motion::Clip;
 use flowmimic_sim::skeleton::BODY_PARENTS;
 use flowmimic_sim::state::offset;
-use flowmimic_sim::{BODY_NAMES, CONTROL_HZ, Humanoid};
+use flowmimic_sim::{BODY_NAMES, CONTROL_HZ, Humanoid, Obstacle};
 use futures_util::{SinkExt, StreamExt};
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
@@ -57,6 +57,10 @@ const SEND_TIMEOUT: Duration = Duration::from_secs(5);
 const YAW_RATE_STEPS: usize = 15;
 /// The push button's kick: a uniform planar speed up to this (the kick protocol's size).
 const PUSH_MAX: f64 = 0.5;
+/// Radius of a dropped obstacle (m), and the most the page may drop (each one compiles the
+/// world anew: milliseconds).
+pub const OBSTACLE_RADIUS: f64 = 0.3;
+const MAX_OBSTACLES: usize = 32;
 
 /// What `flowmimic play` runs.
 pub struct PlayConfig {
@@ -86,6 +90,10 @@ pub enum Command {
         hand: Hand,
         target: Option<[f64; 3]>,
     },
+    /// Drops a cylinder ([`OBSTACLE_RADIUS`]) on the ground at `at`; `None` clears them all.
+    Obstacle {
+        at: Option<[f64; 2]>,
+    },
     Sampler {
         scale: f32,
         nfe: usize,
@@ -105,6 +113,7 @@ struct Inputs {
     seq: u64,
     waypoint: Option<[f64; 2]>,
     reach: Option<(Hand, [f64; 3])>,
+    obstacles: Vec<Obstacle>,
     scale: f32,
     nfe: usize,
     /// Share of inverse dynamics in the executed action; `None`: the model has none.
@@ -126,6 +135,7 @@ impl Inputs {
             reach: self.reach,
             waypoint: self.waypoint,
             approach: idle,
+            obstacles: self.obstacles.clone(),
             ..Task::walk()
         }
     }
@@ -137,6 +147,11 @@ impl Inputs {
             Command::Drive { vx, vy, yaw_rate, seq } => (next.drive, next.seq) = ([vx, vy, yaw_rate], seq),
             Command::Waypoint { at } => next.waypoint = at,
             Command::Hand { hand, target } => next.reach = target.map(|t| (hand, t)),
+            Command::Obstacle { at: Some(at) } if next.obstacles.len() >= MAX_OBSTACLES => {
+                return Err(format!("at most {MAX_OBSTACLES} obstacles (at {at:?}): clear them first"));
+            }
+            Command::Obstacle { at: Some(at) } => next.obstacles.push(Obstacle::cylinder(at, OBSTACLE_RADIUS)),
+            Command::Obstacle { at: None } => next.obstacles.clear(),
             Command::Sampler { scale, nfe, inverse_dynamics } => {
                 if !(scale.is_finite() && (0.0..=1000.0).contains(&scale)) {
                     return Err(format!("guidance scale must be 0-1000, not {scale}"));
@@ -203,6 +218,9 @@ struct Frame {
     applied: u64,
     waypoint: Option<[f64; 2]>,
     reach: Option<(Hand, [f64; 3])>,
+    obstacles: Vec<Obstacle>,
+    /// Whether the humanoid touched an obstacle in this step.
+    touching: bool,
     /// Achieved root velocity in the character frame (forward, left; m/s) and yaw rate over the
     /// last half second (rad/s).
     velocity: [f32; 3],
@@ -246,6 +264,7 @@ impl Session {
             seq: 0,
             waypoint: None,
             reach: None,
+            obstacles: Vec::new(),
             scale: config.control.guidance_scale,
             nfe: config.control.nfe,
             inverse_dynamics: model.inverse.is_some().then_some(config.control.inverse_dynamics),
@@ -350,7 +369,8 @@ struct Recording {
     /// The sampler in force when recording started (the page may change it later).
     sampler: ControlConfig,
     rows: Vec<Row>,
-    actions: Vec<(Vec<f32>, [f32; flowmimic_control::task::COMMAND_DIM])>,
+    /// Per step: the action, the command and whether the humanoid touched an obstacle.
+    actions: Vec<(Vec<f32>, [f32; flowmimic_control::task::COMMAND_DIM], bool)>,
     model_ms: Vec<f32>,
     physics_ms: Vec<f32>,
 }
@@ -369,6 +389,7 @@ impl Simulation<'_> {
         let period = Duration::from_secs_f64(1.0 / CONTROL_HZ);
         let mut rng = rand::rngs::StdRng::seed_from_u64(self.config.control.seed);
         let (mut time, mut stopped, mut recording) = (0.0, None::<String>, None::<Recording>);
+        let mut placed: Vec<Obstacle> = Vec::new();
         let mut step_starts = std::collections::VecDeque::new();
         // Headings of the last half second: the yaw rate over it (a step's own swings with the gait).
         let mut headings = std::collections::VecDeque::new();
@@ -415,6 +436,12 @@ impl Simulation<'_> {
                     }
                 }
             }
+            if inputs.obstacles != placed {
+                match controller.place_obstacles(0, &inputs.obstacles) {
+                    Ok(()) => placed = inputs.obstacles.clone(),
+                    Err(e) => self.notice(format!("obstacles not placed: {e}")),
+                }
+            }
             let bodies = controller.env(0).bodies();
             let planned_from = CharFrame::from_root(bodies.pos[0], bodies.rot[0]);
             let task = inputs.task();
@@ -424,7 +451,7 @@ impl Simulation<'_> {
                     Ok(outcome) => {
                         (model_ms, physics_ms) = (outcome.model_ms, outcome.physics_ms);
                         if let (Some(r), Some(a)) = (recording.as_mut(), &outcome.actions[0]) {
-                            r.actions.push((a.clone(), task.command(time)));
+                            r.actions.push((a.clone(), task.command(time), controller.env(0).touching_obstacle()));
                             r.rows.push(Row::of(controller.env(0)));
                             r.model_ms.push(model_ms);
                             r.physics_ms.push(physics_ms);
@@ -473,6 +500,8 @@ impl Simulation<'_> {
                 applied: inputs.seq,
                 waypoint: inputs.waypoint,
                 reach: inputs.reach,
+                obstacles: inputs.obstacles.clone(),
+                touching: env.touching_obstacle(),
                 velocity: [state[offset::ROOT_VEL], state[offset::ROOT_VEL + 1], yaw_rate as f32],
                 scale: inputs.scale,
                 nfe: inputs.nfe,
@@ -506,8 +535,8 @@ impl Simulation<'_> {
         for (k, row) in r.rows.iter().enumerate() {
             rollout.put_row(0, k, row);
         }
-        for (k, (action, command)) in r.actions.iter().enumerate() {
-            rollout.record_action(0, k, action, command);
+        for (k, (action, command, touched)) in r.actions.iter().enumerate() {
+            rollout.record_action(0, k, action, command, *touched);
         }
         (rollout.model_ms, rollout.physics_ms) = (r.model_ms, r.physics_ms);
         let seconds = r.started.duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
@@ -532,6 +561,7 @@ mod tests {
             seq: 0,
             waypoint: None,
             reach: None,
+            obstacles: Vec::new(),
             scale: 10.0,
             nfe: 5,
             inverse_dynamics: Some(0.0),
@@ -558,6 +588,11 @@ mod tests {
         apply(&mut i, r#"{"type":"sampler","scale":50,"nfe":2,"inverse_dynamics":0.2}"#).unwrap();
         apply(&mut i, r#"{"type":"sampler","scale":40,"nfe":2}"#).unwrap();
         assert_eq!((i.scale, i.inverse_dynamics), (40.0, Some(0.2)), "a sampler message without the share keeps it");
+        apply(&mut i, r#"{"type":"obstacle","at":[2,0.5]}"#).unwrap();
+        apply(&mut i, r#"{"type":"obstacle","at":[3,0]}"#).unwrap();
+        assert_eq!(i.task().obstacles, vec![Obstacle::cylinder([2.0, 0.5], 0.3), Obstacle::cylinder([3.0, 0.0], 0.3)]);
+        apply(&mut i, r#"{"type":"obstacle","at":null}"#).unwrap();
+        assert!(i.task().obstacles.is_empty());
         let before = i.clone();
         for (bad, why) in [
             (r#"{"type":"drive","vx":9,"vy":0,"yaw_rate":0}"#, "joystick speed"),
@@ -565,6 +600,7 @@ mod tests {
             (r#"{"type":"sampler","scale":-1,"nfe":5}"#, "guidance scale"),
             (r#"{"type":"sampler","scale":1,"nfe":0}"#, "NFE"),
             (r#"{"type":"sampler","scale":1,"nfe":2,"inverse_dynamics":1.5}"#, "inverse-dynamics share"),
+            (r#"{"type":"obstacle","at":[1e9,0]}"#, "obstacle position"),
             (r#"{"type":"fly"}"#, "unknown variant"),
             (r#"{"type":"drive","vx":"fast"}"#, "invalid type"),
         ] {

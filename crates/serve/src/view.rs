@@ -10,7 +10,7 @@ use flowmimic_control::Rollout;
 use flowmimic_motion::Clip;
 use flowmimic_sim::skeleton::BODY_PARENTS;
 use flowmimic_sim::state::offset;
-use flowmimic_sim::{BODY_NAMES, CONTROL_HZ, NUM_BODIES};
+use flowmimic_sim::{BODY_NAMES, CONTROL_HZ, NUM_BODIES, Obstacle};
 use std::sync::Arc;
 
 const PAGE: &str = include_str!("view.html");
@@ -31,6 +31,8 @@ pub struct ViewData {
     commands: Option<Vec<Vec<f32>>>,
     reach: bool,
     waypoint: bool,
+    /// Obstacles (world, where they stand at time 0, and how they move).
+    obstacles: Vec<Obstacle>,
     /// Frame of the fall, if any.
     fell: Option<usize>,
 }
@@ -56,6 +58,7 @@ impl ViewData {
             commands: None,
             reach: false,
             waypoint: false,
+            obstacles: Vec::new(),
             fell: None,
         }
     }
@@ -79,6 +82,7 @@ impl ViewData {
             commands,
             reach: task.reach.is_some(),
             waypoint: task.waypoint.is_some(),
+            obstacles: task.obstacles.clone(),
             fell: r.fell(env).then_some(r.survived[env]),
         }
     }

@@ -17,6 +17,10 @@ pub struct Env {
     humanoid: Arc<Humanoid>,
     data: MjData<Arc<MjModel>>,
     steps: u64,
+    /// Control steps since the reset in which the humanoid touched an obstacle, and whether
+    /// the last one did.
+    obstacle_steps: u64,
+    touching: bool,
 }
 
 impl std::fmt::Debug for Env {
@@ -28,7 +32,7 @@ impl std::fmt::Debug for Env {
 impl Env {
     pub(crate) fn new(humanoid: Arc<Humanoid>) -> Self {
         let data = MjData::new(Arc::clone(humanoid.model()));
-        let mut env = Self { humanoid, data, steps: 0 };
+        let mut env = Self { humanoid, data, steps: 0, obstacle_steps: 0, touching: false };
         let (q, v) = (env.humanoid.standing_qpos(), vec![0.0; env.humanoid.nv()]);
         env.reset(&q, &v).expect("the nominal pose is a valid state");
         env
@@ -66,8 +70,49 @@ impl Env {
         let hinges = self.hinge_angles().to_vec();
         self.data.ctrl_mut().copy_from_slice(&hinges);
         self.steps = 0;
+        (self.obstacle_steps, self.touching) = (0, false);
+        self.move_obstacles();
         self.refresh();
         Ok(())
+    }
+
+    /// Moves this environment into `humanoid`'s world (the same humanoid with other
+    /// obstacles, [`Humanoid::with_obstacles`]), keeping its state, time, controls and counts.
+    pub fn enter(&mut self, humanoid: Arc<Humanoid>) -> Result<(), SimError> {
+        if (humanoid.nq(), humanoid.nv()) != (self.humanoid.nq(), self.humanoid.nv()) {
+            return Err(SimError::Config("the new world's humanoid has other joints".into()));
+        }
+        let mut data = MjData::new(Arc::clone(humanoid.model()));
+        data.qpos_mut().copy_from_slice(self.data.qpos());
+        data.qvel_mut().copy_from_slice(self.data.qvel());
+        data.ctrl_mut().copy_from_slice(self.data.ctrl());
+        data.set_time(self.data.time());
+        (self.humanoid, self.data) = (humanoid, data);
+        self.move_obstacles();
+        self.refresh();
+        Ok(())
+    }
+
+    /// Puts each obstacle's mocap body where the obstacle is at the current time.
+    fn move_obstacles(&mut self) {
+        let time = self.data.time();
+        let humanoid = Arc::clone(&self.humanoid);
+        for (slot, o) in self.data.mocap_pos_mut().iter_mut().zip(humanoid.obstacles()) {
+            let [x, y] = o.position(time);
+            slot[0] = x;
+            slot[1] = y;
+        }
+    }
+
+    /// Whether any of the humanoid's geoms touches an obstacle's, in MuJoCo's last contacts.
+    fn touches_obstacle(&self) -> bool {
+        let model = self.humanoid.model();
+        let is_obstacle = |g: i32| self.humanoid.is_obstacle_geom(g as usize);
+        let is_humanoid = |g: i32| !is_obstacle(g) && model.geom_bodyid()[g as usize] > 0;
+        self.data.contact().iter().any(|c| {
+            let [a, b] = [c.geom[0], c.geom[1]];
+            (is_obstacle(a) && is_humanoid(b)) || (is_obstacle(b) && is_humanoid(a))
+        })
     }
 
     /// One 30 Hz control step with normalised action `a` (69 entries). Entries outside
@@ -88,10 +133,17 @@ impl Env {
 
     fn advance(&mut self) -> Result<(), SimError> {
         let bad_before = self.bad_physics_warnings();
+        let obstacles = !self.humanoid.obstacles().is_empty();
+        self.touching = false;
         for _ in 0..self.humanoid.config().substeps {
+            if obstacles {
+                self.move_obstacles();
+            }
             self.data.step();
+            self.touching |= obstacles && self.touches_obstacle();
         }
         self.steps += 1;
+        self.obstacle_steps += u64::from(self.touching);
         // MuJoCo resets the data itself when the accelerations blow up; catch that and any NaN.
         if self.bad_physics_warnings() != bad_before
             || !self.data.qpos().iter().chain(self.data.qvel()).all(|x| x.is_finite())
@@ -217,13 +269,23 @@ impl Env {
             .contact()
             .iter()
             .map(|c| (body_of(c.geom[0]), body_of(c.geom[1])))
-            // Body 0 is MuJoCo's world (the ground); ours are numbered from 1.
-            .filter(|&(a, b)| a > 0 && b > 0)
+            // Body 0 is MuJoCo's world (the ground); ours are numbered from 1, obstacles after.
+            .filter(|&(a, b)| (1..=NUM_BODIES).contains(&a) && (1..=NUM_BODIES).contains(&b))
             .map(|(a, b)| (a.min(b) - 1, a.max(b) - 1))
             .collect();
         pairs.sort_unstable();
         pairs.dedup();
         pairs
+    }
+
+    /// Whether the humanoid touched an obstacle during the last control step (MuJoCo contacts).
+    pub fn touching_obstacle(&self) -> bool {
+        self.touching
+    }
+
+    /// Control steps since the reset in which the humanoid touched an obstacle.
+    pub fn obstacle_steps(&self) -> u64 {
+        self.obstacle_steps
     }
 
     /// Height of the head body, metres.

@@ -1,6 +1,7 @@
 //! The compiled humanoid: MuJoCo model, action mapping and body ids, shared by every env.
 
 use crate::mjcf::{MjcfOptions, Root, humanoid_xml};
+use crate::obstacle::Obstacle;
 use crate::skeleton::{BODY_NAMES, NUM_BODIES, NUM_DOFS, bodies, body};
 use crate::{Env, SimError};
 use mujoco_rs::prelude::*;
@@ -80,13 +81,17 @@ pub struct Humanoid {
     pub(crate) model: Arc<MjModel>,
     xml: String,
     config: SimConfig,
-    root: Root,
+    options: MjcfOptions,
     actions: ActionMap,
 }
 
 impl std::fmt::Debug for Humanoid {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Humanoid").field("config", &self.config).field("root", &self.root).finish()
+        f.debug_struct("Humanoid")
+            .field("config", &self.config)
+            .field("root", &self.options.root)
+            .field("obstacles", &self.options.obstacles.len())
+            .finish()
     }
 }
 
@@ -129,7 +134,7 @@ impl Humanoid {
         if config.substeps == 0 {
             return Err(SimError::Config("sim.substeps must be at least 1".into()));
         }
-        let mut options = MjcfOptions { root, timestep: config.timestep(), exclude: Vec::new() };
+        let mut options = MjcfOptions { root, timestep: config.timestep(), exclude: Vec::new(), obstacles: Vec::new() };
         let actions = ActionMap::from_skeleton();
         // Self-collision is on, except for body pairs whose capsules already overlap in the
         // T-pose or the nominal pose (e.g. chest and upper arm): those would fight forever.
@@ -142,9 +147,33 @@ impl Humanoid {
         exclude.sort_unstable();
         exclude.dedup();
         options.exclude = exclude;
+        Self::compiled(config, options, actions)
+    }
+
+    fn compiled(config: SimConfig, options: MjcfOptions, actions: ActionMap) -> Result<Arc<Self>, SimError> {
         let xml = humanoid_xml(&options);
         let model = compile(&xml)?;
-        Ok(Arc::new(Self { model: Arc::new(model), xml, config, root, actions }))
+        Ok(Arc::new(Self { model: Arc::new(model), xml, config, options, actions }))
+    }
+
+    /// The same humanoid in a world with `obstacles` (they replace any it had). Each call
+    /// compiles a model of its own: environments with different obstacles do not share one.
+    pub fn with_obstacles(&self, obstacles: &[Obstacle]) -> Result<Arc<Self>, SimError> {
+        if let Some(e) = obstacles.iter().find_map(|o| o.validate().err()) {
+            return Err(SimError::Config(e));
+        }
+        let options = MjcfOptions { obstacles: obstacles.to_vec(), ..self.options.clone() };
+        Self::compiled(self.config, options, self.actions.clone())
+    }
+
+    /// The obstacles of its world, where they stand at time 0.
+    pub fn obstacles(&self) -> &[Obstacle] {
+        &self.options.obstacles
+    }
+
+    /// Whether MuJoCo geom `g` is an obstacle's (they come after the humanoid's).
+    pub(crate) fn is_obstacle_geom(&self, g: usize) -> bool {
+        g >= self.model.ffi().ngeom as usize - self.options.obstacles.len()
     }
 
     /// A new environment (one `MjData`) in the nominal standing pose.
@@ -168,7 +197,7 @@ impl Humanoid {
 
     /// Whether the pelvis is free (`true`) or welded.
     pub fn has_free_root(&self) -> bool {
-        self.root == Root::Free
+        self.options.root == Root::Free
     }
 
     /// Length of `qpos` (76 with a free root).
@@ -183,7 +212,7 @@ impl Humanoid {
 
     /// Total mass, kg.
     pub fn mass(&self) -> f64 {
-        self.model.body_mass().iter().sum()
+        self.body_masses().iter().sum()
     }
 
     /// Mass of each body, kg, in skeleton order.
@@ -201,8 +230,8 @@ impl Humanoid {
     /// `qpos` of a pose: root position, root quaternion `(w, x, y, z)` and 69 hinge angles.
     /// With a welded root only the hinges are used.
     pub fn qpos(&self, root_pos: [f64; 3], root_quat: [f64; 4], hinges: &[f64]) -> Vec<f64> {
-        let mut q = pose_qpos(self.root, root_pos, hinges);
-        if self.root == Root::Free {
+        let mut q = pose_qpos(self.options.root, root_pos, hinges);
+        if self.options.root == Root::Free {
             q[3..7].copy_from_slice(&root_quat);
         }
         q
@@ -249,11 +278,14 @@ fn pose_qpos(root: Root, root_pos: [f64; 3], hinges: &[f64]) -> Vec<f64> {
     }
 }
 
-/// The body names in MuJoCo order must be ours: every array is indexed by this order.
+/// The body names in MuJoCo order must be ours (the obstacles' after them): every array is
+/// indexed by this order.
 pub fn check_body_order(humanoid: &Humanoid) -> Result<(), SimError> {
     let names = humanoid.mujoco_body_names();
     let ours: Vec<&str> = BODY_NAMES.to_vec();
-    if names.len() != NUM_BODIES + 1 || names[1..].iter().map(String::as_str).ne(ours.iter().copied()) {
+    if names.len() != NUM_BODIES + 1 + humanoid.obstacles().len()
+        || names[1..=NUM_BODIES].iter().map(String::as_str).ne(ours.iter().copied())
+    {
         return Err(SimError::Model(format!("body order {names:?} differs from {ours:?}")));
     }
     Ok(())

@@ -6,13 +6,15 @@
 //!   `q_des = q_bar + alpha * a`;
 //! - [`Env`]: reset to a full state, 30 Hz control steps, the 165-d [`state`], kicks, falls;
 //! - [`VecEnv`]: many environments stepped in parallel on all cores;
-//! - [`Mirror`]: the left-right mirror image of states and actions.
+//! - [`Mirror`]: the left-right mirror image of states and actions;
+//! - [`obstacle`]: solid cylinders and boxes, standing or moving, that the humanoid can touch.
 
 pub mod bench;
 mod env;
 mod humanoid;
 pub mod mirror;
 pub mod mjcf;
+pub mod obstacle;
 #[cfg(feature = "render")]
 pub mod render;
 pub mod skeleton;
@@ -22,6 +24,7 @@ mod vec_env;
 pub use env::{Env, FALL_HEAD_HEIGHT};
 pub use humanoid::{ActionMap, CONTROL_HZ, Humanoid, STANDING_PELVIS_HEIGHT, SimConfig, check_body_order};
 pub use mirror::Mirror;
+pub use obstacle::{Footprint, Obstacle};
 pub use skeleton::{BODY_NAMES, NUM_BODIES, NUM_DOFS, NUM_JOINTS};
 pub use state::{BodyKinematics, STATE_DIM};
 pub use vec_env::VecEnv;

@@ -1,6 +1,7 @@
 //! MJCF generation for the humanoid: the model is code, so every number in it has one source
 //! ([`crate::skeleton`]) and `flowmimic sim xml` writes the exact XML MuJoCo loads.
 
+use crate::obstacle::{Footprint, Obstacle};
 use crate::skeleton::{BODY_PARENTS, BodySpec, JointGroup, Shape, bodies};
 use std::fmt::Write;
 
@@ -34,6 +35,9 @@ pub struct MjcfOptions {
     pub timestep: f64,
     /// Body pairs whose geoms overlap in the rest or nominal pose and must not collide.
     pub exclude: Vec<(usize, usize)>,
+    /// Solid obstacles, each a geom on a mocap body placed after the humanoid's (so the
+    /// humanoid's body and geom numbers do not change), where it stands at time 0.
+    pub obstacles: Vec<Obstacle>,
 }
 
 fn v3(v: [f64; 3]) -> String {
@@ -79,6 +83,19 @@ fn write_body(xml: &mut String, specs: &[BodySpec], index: usize, root: Root, de
     writeln!(xml, "{pad}</body>").unwrap();
 }
 
+/// An obstacle's mocap body and geom, its base 1 mm above the floor so that the two never touch.
+fn write_obstacle(xml: &mut String, index: usize, o: &Obstacle) {
+    let half_height = o.height / 2.0;
+    let (size, yaw) = match o.footprint {
+        Footprint::Cylinder { radius } => (format!("type=\"cylinder\" size=\"{radius} {half_height}\""), 0.0),
+        Footprint::Box { half, yaw } => (format!("type=\"box\" size=\"{} {} {half_height}\"", half[0], half[1]), yaw),
+    };
+    let pos = v3([o.at[0], o.at[1], half_height + 1e-3]);
+    writeln!(xml, "    <body name=\"obstacle_{index}\" mocap=\"true\" pos=\"{pos}\" euler=\"0 0 {yaw}\">").unwrap();
+    writeln!(xml, "      <geom name=\"obstacle_{index}\" {size} rgba=\"0.45 0.5 0.6 1\"/>").unwrap();
+    writeln!(xml, "    </body>").unwrap();
+}
+
 /// The humanoid's MJCF.
 pub fn humanoid_xml(options: &MjcfOptions) -> String {
     let specs = bodies();
@@ -106,6 +123,9 @@ pub fn humanoid_xml(options: &MjcfOptions) -> String {
         "    <camera name=\"side\" mode=\"trackcom\" pos=\"0 -3.5 1.2\" xyaxes=\"1 0 0 0 0.25 1\"/>\n",
     ));
     write_body(&mut xml, &specs, 0, options.root, 2);
+    for (i, o) in options.obstacles.iter().enumerate() {
+        write_obstacle(&mut xml, i, o);
+    }
     writeln!(xml, "  </worldbody>").unwrap();
     if !options.exclude.is_empty() {
         writeln!(xml, "  <contact>").unwrap();

@@ -4,6 +4,7 @@
 
 use crate::SimError;
 use crate::humanoid::Humanoid;
+use crate::obstacle::{Footprint, Obstacle};
 use mujoco_rs::mujoco_c::{mjtGeom, mjv_connector};
 use mujoco_rs::prelude::*;
 use mujoco_rs::renderer::MjRenderer;
@@ -16,6 +17,8 @@ pub enum Marker {
     Sphere { pos: [f64; 3], radius: f64, rgba: [f32; 4] },
     /// An arrow from one point to another (a commanded velocity).
     Arrow { from: [f64; 3], to: [f64; 3], width: f64, rgba: [f32; 4] },
+    /// An obstacle where it stands at `time` (s).
+    Obstacle { obstacle: Obstacle, time: f64, rgba: [f32; 4] },
 }
 
 /// Renders poses of the humanoid with a camera that follows the pelvis.
@@ -72,6 +75,33 @@ impl Renderer {
                     Marker::Arrow { from, to, width, rgba } => {
                         let geom = scene.create_geom(MjtGeom::mjGEOM_ARROW, None, None, None, Some(rgba));
                         mjv_connector(geom, mjtGeom::mjGEOM_ARROW as i32, width, &from, &to);
+                    }
+                    Marker::Obstacle { obstacle: o, time, rgba } => {
+                        let [x, y] = o.position(time);
+                        let (h, pos) = (o.height / 2.0, Some([x, y, o.height / 2.0]));
+                        match o.footprint {
+                            Footprint::Cylinder { radius } => {
+                                // mjv_initGeom reads a cylinder's size as (radius, half-height).
+                                scene.create_geom(
+                                    MjtGeom::mjGEOM_CYLINDER,
+                                    Some([radius, h, 0.0]),
+                                    pos,
+                                    None,
+                                    Some(rgba),
+                                );
+                            }
+                            Footprint::Box { half, yaw } => {
+                                let (s, c) = yaw.sin_cos();
+                                let mat = [c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0];
+                                scene.create_geom(
+                                    MjtGeom::mjGEOM_BOX,
+                                    Some([half[0], half[1], h]),
+                                    pos,
+                                    Some(mat),
+                                    Some(rgba),
+                                );
+                            }
+                        }
                     }
                 }
             }

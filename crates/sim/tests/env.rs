@@ -363,3 +363,49 @@ fn the_mirror_image_of_a_motion_is_the_motion_of_the_mirrored_actions() {
     assert!(difference < 1e-3, "mirror images {difference} apart after 2 s");
     assert!(largest_difference(&env.state(), &image.state()) > 0.1, "the two motions differ");
 }
+
+#[test]
+fn obstacles_are_solid_move_and_leave_the_humanoid_as_it_was() {
+    let h = humanoid();
+    let zero = vec![0f32; NUM_DOFS];
+    // Far away, a standing and a moving obstacle change nothing of the humanoid's own motion.
+    let far = [Obstacle::cylinder([5.0, 5.0], 0.3), Obstacle::cylinder([-5.0, 5.0], 0.3).moving([0.0, -1.0])];
+    let world = h.with_obstacles(&far).unwrap();
+    check_body_order(&world).unwrap();
+    assert!((world.mass() - h.mass()).abs() < 1e-9, "obstacles weigh nothing in the humanoid's mass");
+    let (mut plain, mut with) = (moving_env(&h), h.env());
+    with.enter(Arc::clone(&world)).unwrap();
+    // Both from the same state, time and controls.
+    let (q, v) = (plain.qpos().to_vec(), plain.qvel().to_vec());
+    with.reset(&q, &v).unwrap();
+    plain.reset(&q, &v).unwrap();
+    for s in 0..30 {
+        plain.step(&action(s, 0.3)).unwrap();
+        with.step(&action(s, 0.3)).unwrap();
+        assert!(!with.touching_obstacle());
+    }
+    assert_eq!(plain.qpos(), with.qpos(), "a far obstacle changed the humanoid's motion");
+    assert!(plain.self_contacts() == with.self_contacts());
+
+    // A cylinder rolling in from 2 m at 1 m/s reaches the standing humanoid, touches it (a
+    // MuJoCo contact) and pushes it over.
+    let wall =
+        Obstacle { footprint: Footprint::Box { half: [0.2, 1.0], yaw: 0.0 }, ..Obstacle::cylinder([2.0, 0.0], 0.3) };
+    let mut env = h.with_obstacles(&[wall.moving([-1.0, 0.0])]).unwrap().env();
+    let mut first = None;
+    for s in 0..90 {
+        env.step(&zero).unwrap();
+        if env.touching_obstacle() && first.is_none() {
+            first = Some(s);
+        }
+    }
+    let first = first.expect("the moving wall never touched the humanoid");
+    // The wall's face starts 1.8 m out; the humanoid's front is 0.1-0.3 m from the pelvis.
+    assert!((40..=55).contains(&first), "first contact at step {first}");
+    assert!(env.obstacle_steps() > 5 && env.bodies().pos[0].x < -0.5, "not pushed: {}", env.bodies().pos[0].x);
+    // Entering a world keeps state and time: the wall is still where its time puts it.
+    let (q, t) = (env.qpos().to_vec(), env.time());
+    env.enter(h.with_obstacles(&[wall.moving([-1.0, 0.0])]).unwrap()).unwrap();
+    assert_eq!((env.qpos(), env.time()), (&q[..], t));
+    assert!(h.with_obstacles(&[Obstacle::cylinder([0.0, 0.0], -1.0)]).is_err());
+}

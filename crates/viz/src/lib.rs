@@ -24,6 +24,9 @@ pub enum VizError {
 }
 
 /// A sequence of poses at 30 Hz with their markers.
+/// Colour of obstacles in pictures: see-through, so that the humanoid shows behind them.
+const OBSTACLE_RGBA: [f32; 4] = [0.45, 0.5, 0.6, 0.55];
+
 pub struct Frames {
     pub name: String,
     pub qpos: Vec<Vec<f64>>,
@@ -65,6 +68,8 @@ impl Frames {
                 let to = [q[0] + yaw.cos() * vx - yaw.sin() * vy, q[1] + yaw.sin() * vx + yaw.cos() * vy, 0.05];
                 m.push(Marker::Arrow { from: [q[0], q[1], 0.05], to, width: 0.04, rgba: [0.1, 0.3, 0.9, 0.9] });
             }
+            let time = k as f64 / CONTROL_HZ;
+            m.extend(task.obstacles.iter().map(|&obstacle| Marker::Obstacle { obstacle, time, rgba: OBSTACLE_RGBA }));
             qpos.push(q);
             markers.push(m);
         }
