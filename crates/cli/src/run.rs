@@ -2,6 +2,7 @@
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
+use flowmimic_control::controller::start_pose;
 use flowmimic_control::recommended::Settings;
 use flowmimic_control::{Adaptive, ControlConfig, Hand, JoystickSegment, Recommended, Rollout, StepReport, Task};
 use flowmimic_eval::HAND_REACHED;
@@ -43,6 +44,7 @@ pub struct RunArgs {
     #[arg(long, value_enum, default_value_t = HandArg::Right)]
     pub hand: HandArg,
     /// Hand target in the world, `x,y,z` metres (the humanoid starts at the origin facing +x;
+    /// with --envs N each environment is given its task as seen from where it starts;
     /// the shipped model's hand reaches 0.7-1.0 m high) [default: 2.0,-0.4,0.85].
     #[arg(long)]
     pub target: Option<String>,
@@ -469,15 +471,13 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
             );
         }
     };
-    let rollout = flowmimic_control::run(
-        &model,
-        humanoid,
-        &clip,
-        vec![task; args.envs],
-        &control,
-        &model_dir.display().to_string(),
-        status,
-    )?;
+    // Environments start at different frames of the clip, so at different places: each gets the
+    // task as the first one sees it from where it starts.
+    let history = model.layout().spec.history;
+    let first = start_pose(&clip, history, 0);
+    let tasks = (0..args.envs).map(|e| task.moved(&first, &start_pose(&clip, history, e))).collect();
+    let rollout =
+        flowmimic_control::run(&model, humanoid, &clip, tasks, &control, &model_dir.display().to_string(), status)?;
     rollout.save(&out)?;
     print_outcome(&Outcome::of(&rollout));
     print_timing(&rollout);

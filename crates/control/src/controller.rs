@@ -7,7 +7,7 @@ use crate::history::History;
 use crate::rollout::{Rollout, RolloutInfo};
 use crate::task::{HeadingHold, Task};
 use crate::{ControlError, Layout};
-use flowmimic_geom::CharFrame;
+use flowmimic_geom::{CharFrame, DVec3, heading, quat_from_wxyz};
 use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_sim::{CONTROL_HZ, Env, Humanoid, NUM_DOFS, Obstacle};
@@ -117,6 +117,13 @@ pub fn start_from_clip(
     env.reset(&clip.qpos[frame], &clip.qvel[frame])?;
     history.observe(&env.bodies());
     Ok(())
+}
+
+/// Where environment `e` starts (its character frame on the ground) when started from `clip`
+/// with a history of `history` states ([`start_frame`]).
+pub fn start_pose(clip: &Clip, history: usize, e: usize) -> CharFrame {
+    let q = &clip.qpos[start_frame(clip.len(), history, e)];
+    CharFrame::new(DVec3::new(q[0], q[1], 0.0), heading(quat_from_wxyz([q[3], q[4], q[5], q[6]])))
 }
 
 /// The clip frame environment `e` starts from: spread over the gait cycle, 7 frames apart.

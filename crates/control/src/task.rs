@@ -6,8 +6,8 @@ use crate::costs::{Heading, Joystick, Pursuit, Reach, Sum};
 use crate::obstacles::{Avoid, in_frame, world_detour};
 use crate::{ControlError, Layout};
 use flowmimic_geom::{CharFrame, DVec3, wrap_angle};
-use flowmimic_sim::Obstacle;
 use flowmimic_sim::skeleton::body;
+use flowmimic_sim::{Footprint, Obstacle};
 use serde::{Deserialize, Serialize};
 
 /// One piece of a joystick schedule: hold (vx forward, vy left in the character frame, m/s;
@@ -84,6 +84,10 @@ impl Task {
     /// How far from its waypoint the pelvis may stand to bring the hand to its target, when the
     /// task asks both (m; the composition's success radius is 0.5 m).
     pub const WAYPOINT_RADIUS: f64 = 0.4;
+    /// Among obstacles, how near (m, from the pelvis) a hand target is before the hand is asked
+    /// for it (with `run --task reach --approach` through a post in the way, asked from the
+    /// start, 6 of 8 walkers touched it: docs/obstacles.md).
+    pub const HAND_NEAR: f64 = 1.5;
 
     pub fn walk() -> Self {
         Self { weights: [1.0; 4], ..Default::default() }
@@ -120,6 +124,36 @@ impl Task {
         match self.weights.iter().find(|w| !w.is_finite() || **w < 0.0) {
             Some(w) => Err(ControlError::BadCommand { what: "task weight", value: f64::from(*w) }),
             None => Ok(()),
+        }
+    }
+
+    /// The task carried rigidly from the frame `from` to the frame `to`: its hand target,
+    /// waypoint and obstacles (their velocities and turns too) stay where they are relative to
+    /// the frame; heights and the joystick, which is in the walker's own frame, do not change.
+    pub fn moved(&self, from: &CharFrame, to: &CharFrame) -> Task {
+        let carry = |p: [f64; 2]| {
+            let w = to.point_to_world(from.point(DVec3::new(p[0], p[1], from.origin.z)));
+            [w.x, w.y]
+        };
+        let turn = |v: [f64; 2]| {
+            let w = to.vector_to_world(from.vector(DVec3::new(v[0], v[1], 0.0)));
+            [w.x, w.y]
+        };
+        let obstacles = self.obstacles.iter().map(|o| {
+            let footprint = match o.footprint {
+                Footprint::Box { half, yaw } => Footprint::Box { half, yaw: wrap_angle(yaw + to.yaw - from.yaw) },
+                cylinder => cylinder,
+            };
+            Obstacle { footprint, at: carry(o.at), velocity: turn(o.velocity), height: o.height }
+        });
+        Task {
+            reach: self.reach.map(|(hand, t)| {
+                let [x, y] = carry([t[0], t[1]]);
+                (hand, [x, y, t[2]])
+            }),
+            waypoint: self.waypoint.map(carry),
+            obstacles: obstacles.collect(),
+            ..self.clone()
         }
     }
 
@@ -174,7 +208,12 @@ impl Task {
             sum = sum.with(wt, Heading::new(layout, rate)?);
         }
         if let Some((hand, target)) = self.reach {
-            sum = sum.with(wr, Reach::world(layout, hand.body(), target, frame)?);
+            // Among obstacles the hand's cost would pull the walker straight at its target,
+            // through whatever stands between: it waits until the target is near.
+            let near = (target[0] - frame.origin.x).hypot(target[1] - frame.origin.y) <= Self::HAND_NEAR;
+            if !self.avoids() || near {
+                sum = sum.with(wr, Reach::world(layout, hand.body(), target, frame)?);
+            }
         }
         if let Some(goal) = self.pelvis_goal(frame, time) {
             let to = Pursuit::world(goal, frame)?;

@@ -146,3 +146,44 @@ fn a_task_with_obstacles_avoids_them_unless_blind() {
     let bad = Task { obstacles: vec![Obstacle::cylinder([1.0, f64::NAN], 0.3)], ..task };
     assert!(matches!(bad.validate(), Err(ControlError::Obstacle(_))));
 }
+
+#[test]
+fn among_obstacles_the_hand_waits_until_its_target_is_near() {
+    let layout = Layout { horizon: 16 };
+    let frame = CharFrame::new(DVec3::new(0.0, 0.0, 0.9), 0.0);
+    let reach = Some((Hand::Right, [4.0, -0.4, 0.85]));
+    let task = Task { reach, approach: true, obstacles: vec![Obstacle::cylinder([2.8, 0.0], 0.3)], ..Task::walk() };
+    let far = task.cost(layout, 0.0, &frame, 0.0).unwrap().unwrap();
+    let near = task.cost(layout, 0.0, &CharFrame::new(DVec3::new(3.0, 0.0, 0.9), 0.0), 0.0).unwrap().unwrap();
+    let open = Task { obstacles: Vec::new(), ..task.clone() }.cost(layout, 0.0, &frame, 0.0).unwrap().unwrap();
+    // Pursuit and heading, and the plan's obstacle cost; the hand's cost once near, or always
+    // without obstacles.
+    assert_eq!((far.terms.len(), near.terms.len(), open.terms.len()), (3, 4, 3));
+}
+
+#[test]
+fn a_task_moves_rigidly_with_the_frame_it_is_given_in() {
+    let from = CharFrame::new(DVec3::new(1.0, 0.0, 0.0), 0.0);
+    let to = CharFrame::new(DVec3::new(0.0, 2.0, 0.0), std::f64::consts::FRAC_PI_2);
+    let wall =
+        Obstacle { footprint: Footprint::Box { half: [0.2, 1.0], yaw: 0.1 }, ..Obstacle::cylinder([3.0, 0.0], 0.1) };
+    let task = Task {
+        reach: Some((Hand::Left, [2.0, 1.0, 1.2])),
+        waypoint: Some([5.0, 0.0]),
+        obstacles: vec![wall.moving([0.0, 1.0])],
+        ..Task::joystick_eval()
+    };
+    let moved = task.moved(&from, &to);
+    let close = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).abs() < 1e-12 && (a[1] - b[1]).abs() < 1e-12;
+    // 4 m ahead of `from` is 4 m ahead of `to`, which faces +y.
+    assert!(close(moved.waypoint.unwrap(), [0.0, 6.0]), "{:?}", moved.waypoint);
+    let (hand, t) = moved.reach.unwrap();
+    assert!(hand == Hand::Left && close([t[0], t[1]], [-1.0, 3.0]) && t[2] == 1.2, "{t:?}");
+    let o = moved.obstacles[0];
+    assert!(close(o.at, [0.0, 4.0]) && close(o.velocity, [-1.0, 0.0]), "{o:?}");
+    assert!(
+        matches!(o.footprint, Footprint::Box { yaw, .. } if (yaw - (0.1 + std::f64::consts::FRAC_PI_2)).abs() < 1e-12)
+    );
+    assert_eq!(moved.joystick, task.joystick, "the joystick is the walker's own");
+    assert_eq!(task.moved(&from, &from), task);
+}

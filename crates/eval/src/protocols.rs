@@ -3,7 +3,7 @@
 
 use crate::{HAND_REACHED, composition_success, reach_errors, velocity_rmse};
 use flowmimic_control::{Adaptive, ControlConfig, ControlError, Hand, Rollout, StepReport, Task, controller};
-use flowmimic_geom::{DVec3, heading, quat_from_wxyz, wrap_angle, yaw_quat};
+use flowmimic_geom::{CharFrame, DVec3, wrap_angle};
 use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_sim::skeleton::body;
@@ -89,16 +89,13 @@ impl Bench<'_> {
     }
 
     /// The world pose (x, y, heading) environment `e` starts from.
-    fn start_pose(&self, e: usize) -> (DVec3, f64) {
-        let n = self.model.layout().spec.history;
-        let q = &self.clip.qpos[controller::start_frame(self.clip.len(), n, e)];
-        (DVec3::new(q[0], q[1], 0.0), heading(quat_from_wxyz([q[3], q[4], q[5], q[6]])))
+    fn start_pose(&self, e: usize) -> CharFrame {
+        controller::start_pose(self.clip, self.model.layout().spec.history, e)
     }
 
     /// A point given in environment `e`'s starting character frame, in the world.
     fn start_to_world(&self, e: usize, local: DVec3) -> DVec3 {
-        let (origin, yaw) = self.start_pose(e);
-        origin + yaw_quat(yaw) * local
+        self.start_pose(e).point_to_world(local)
     }
 }
 
@@ -397,17 +394,9 @@ pub fn forest(
     let tasks: Vec<Task> = (0..trials)
         .map(|e| {
             let distance = rng.random_range(8.0..10.0);
-            let goal = bench.start_to_world(e, DVec3::new(distance, 0.0, 0.0));
-            let (origin, yaw) = bench.start_pose(e);
-            let obstacles = forest_layout(&mut rng, distance, setup.moving)
-                .into_iter()
-                .map(|o| {
-                    let at = origin + yaw_quat(yaw) * DVec3::new(o.at[0], o.at[1], 0.0);
-                    let v = yaw_quat(yaw) * DVec3::new(o.velocity[0], o.velocity[1], 0.0);
-                    Obstacle { at: [at.x, at.y], velocity: [v.x, v.y], ..o }
-                })
-                .collect();
-            Task { waypoint: Some([goal.x, goal.y]), obstacles, blind: setup.blind, ..Task::walk() }
+            let obstacles = forest_layout(&mut rng, distance, setup.moving);
+            let local = Task { waypoint: Some([distance, 0.0]), obstacles, blind: setup.blind, ..Task::walk() };
+            local.moved(&CharFrame::new(DVec3::ZERO, 0.0), &bench.start_pose(e))
         })
         .collect();
     let name =
