@@ -3,7 +3,7 @@
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use flowmimic_control::controller::start_pose;
-use flowmimic_control::recommended::Settings;
+use flowmimic_control::recommended::{DEFAULT_NFE, DEFAULT_SCALE, Settings};
 use flowmimic_control::{Adaptive, ControlConfig, Hand, JoystickSegment, Recommended, Rollout, StepReport, Task};
 use flowmimic_eval::HAND_REACHED;
 use flowmimic_eval::outcome::{FOLLOWED_SPEED, FOLLOWED_YAW_RATE, Outcome};
@@ -131,10 +131,6 @@ pub struct GuidanceArgs {
     pub inverse_dynamics: Option<f32>,
 }
 
-/// Built-in defaults where neither a flag nor the model says: the paper's NFE 5 and a light w.
-const DEFAULT_NFE: usize = 5;
-const DEFAULT_SCALE: f32 = 10.0;
-
 /// Which settings a command drives a model with, and where each came from.
 #[derive(Clone, Copy, Debug)]
 pub struct Chosen {
@@ -175,19 +171,24 @@ impl DriveArgs {
         pick("guidance steps", interval(g.guidance_interval), interval(model_interval), "all but the last quarter");
         pick("approach", self.approach.map(|a| a.to_string()), model.approach.map(|a| a.to_string()), "false");
         eprintln!("settings for {task}: {}", said.join(", "));
-        let reference = g.adaptive.or(model.adaptive).filter(|&r| r > 0.0);
-        let chosen = Chosen {
-            nfe: self.nfe.or(model.nfe).unwrap_or(DEFAULT_NFE),
-            guidance_scale: self.guidance_scale.or(model.guidance_scale).unwrap_or(DEFAULT_SCALE),
-            adaptive: reference.map(Adaptive::new).transpose()?,
-            inverse_dynamics: g.inverse_dynamics.or(model.inverse_dynamics).unwrap_or(0.0),
-            guidance_interval: g.guidance_interval.or(model_interval),
-            approach: self.approach.or(model.approach).unwrap_or(false),
+        let flags = Settings {
+            nfe: self.nfe,
+            guidance_scale: self.guidance_scale,
+            adaptive: g.adaptive,
+            inverse_dynamics: g.inverse_dynamics,
+            guidance_interval: g.guidance_interval.map(|(a, b)| [a, b]),
+            approach: self.approach,
         };
-        if !(0.0..=1.0).contains(&chosen.inverse_dynamics) {
-            bail!("--inverse-dynamics {}: give a share from 0 to 1", chosen.inverse_dynamics);
-        }
-        Ok(chosen)
+        let settings = flags.or(model);
+        let config = settings.control(g.gradient, 0.0).map_err(|e| anyhow::anyhow!("{e} (from flags or the model)"))?;
+        Ok(Chosen {
+            nfe: config.nfe,
+            guidance_scale: config.guidance_scale,
+            adaptive: config.adaptive,
+            inverse_dynamics: config.inverse_dynamics,
+            guidance_interval: config.guidance_steps,
+            approach: settings.approaches(),
+        })
     }
 }
 

@@ -51,7 +51,50 @@ pub struct Recommended {
     pub play: Settings,
 }
 
+/// Network evaluations and guidance scale where neither the caller nor the model says.
+pub const DEFAULT_NFE: usize = 5;
+pub const DEFAULT_SCALE: f32 = 10.0;
+
 impl Settings {
+    /// Each setting from `self` where given, else from `under` (a flag over the model's).
+    pub fn or(&self, under: &Settings) -> Settings {
+        Settings {
+            nfe: self.nfe.or(under.nfe),
+            guidance_scale: self.guidance_scale.or(under.guidance_scale),
+            adaptive: self.adaptive.or(under.adaptive),
+            inverse_dynamics: self.inverse_dynamics.or(under.inverse_dynamics),
+            guidance_interval: self.guidance_interval.or(under.guidance_interval),
+            approach: self.approach.or(under.approach),
+        }
+    }
+
+    /// Whether to walk up to a hand target (default no).
+    pub fn approaches(&self) -> bool {
+        self.approach.unwrap_or(false)
+    }
+
+    /// The controller's settings for `seconds`, the defaults where absent ([`DEFAULT_NFE`],
+    /// [`DEFAULT_SCALE`], the fixed scale, no inverse dynamics, the default guidance interval).
+    pub fn control(
+        &self,
+        gradient: flowmimic_model::Gradient,
+        seconds: f64,
+    ) -> Result<crate::ControlConfig, ControlError> {
+        self.validate("settings").map_err(ControlError::Sampler)?;
+        let reference = self.adaptive.filter(|&r| r > 0.0);
+        Ok(crate::ControlConfig {
+            gradient,
+            guidance_steps: self.guidance_interval.map(|[a, b]| (a, b)),
+            adaptive: reference.map(Adaptive::new).transpose()?,
+            inverse_dynamics: self.inverse_dynamics.unwrap_or(0.0),
+            ..crate::ControlConfig::new(
+                self.nfe.unwrap_or(DEFAULT_NFE),
+                self.guidance_scale.unwrap_or(DEFAULT_SCALE),
+                seconds,
+            )
+        })
+    }
+
     fn validate(&self, task: &str) -> Result<(), String> {
         let bad = |what: &str, value: String| Err(format!("[{task}] {what} = {value}"));
         if let Some(n) = self.nfe.filter(|&n| n == 0) {
