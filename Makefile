@@ -5,7 +5,7 @@ MUJOCO := third_party/mujoco/libmujoco.so
 # numpy and onnxruntime for the ONNX export check (optional: skipped when they cannot be installed).
 PYDEPS := third_party/python
 
-.PHONY: run demo test lint bench mujoco chromium
+.PHONY: run demo test lint bench mujoco chromium python
 
 # The whole pipeline on the cpu preset: clips -> experts -> rollouts -> FM and DDPM -> evaluation.
 run: $(MUJOCO)
@@ -19,6 +19,11 @@ demo: $(MUJOCO)
 
 test: $(MUJOCO) $(PYDEPS) chromium
 	cargo test --workspace
+	./scripts/test-python.sh
+
+# The Python package into the current Python environment (Rust and pip needed; a few minutes).
+python:
+	python3 -m pip install ./python
 
 lint: $(MUJOCO)
 	cargo fmt --check

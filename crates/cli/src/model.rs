@@ -2,6 +2,7 @@
 
 use crate::progress::{CsvLog, Progress};
 use anyhow::{Context, Result, bail};
+use flowmimic_control::humanoid_layout;
 use flowmimic_data::{Dataset, Stats};
 use flowmimic_model::train::{CHECKPOINT_FILE, MODEL_FILE};
 use flowmimic_model::{
@@ -14,11 +15,6 @@ use rand::rngs::StdRng;
 use rand_distr::{Distribution, StandardNormal};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-
-/// The token layout of this humanoid's states and actions for `config`'s window.
-pub fn layout(config: &ModelConfig) -> TokenLayout {
-    TokenLayout { state_dim: STATE_DIM, action_dim: NUM_DOFS, spec: config.spec() }
-}
 
 const LOG_HEADER: &str = "step,train_loss,validation_loss,lr,seconds,windows_per_second";
 
@@ -49,7 +45,7 @@ pub fn train(
         bail!("{} exists: pass --resume to continue it, or choose another --out", out.join(CHECKPOINT_FILE).display());
     }
     let dataset = Dataset::open(dataset)?;
-    let layout = layout(&model);
+    let layout = humanoid_layout(&model);
     let stats = Stats::of_dataset(&dataset, layout.spec)?;
     let started = Instant::now();
     let data = WindowSet::from_dataset(&dataset, layout, &stats, cfg.validation_fraction)?;
@@ -176,7 +172,7 @@ pub fn bench(sizes: &[(&str, ModelConfig)], repeats: usize) -> Result<()> {
         "size", "params", "obj", "batch", "nfe", "median ms", "ms/sample", "GFLOP", "peak"
     );
     for (name, config) in sizes {
-        let layout = layout(config);
+        let layout = humanoid_layout(config);
         for objective in ["fm", "ddpm"] {
             let model = untrained(config, &layout, TrainConfig::default().objective(objective)?);
             for batch in [1, 64] {
@@ -212,7 +208,7 @@ pub fn bench(sizes: &[(&str, ModelConfig)], repeats: usize) -> Result<()> {
     println!("{:<12} {:>5} {:>6} {:>11} {:>9} {:>7}", "size", "H", "batch", "median ms", "GFLOP", "peak");
     let guidance = |c: &ModelConfig| ModelConfig { horizon: 16, pairing: Pairing::StateActionState, ..*c };
     for (name, config) in sizes.iter().flat_map(|(n, c)| [(n.to_string(), *c), (format!("{n}-guide"), guidance(c))]) {
-        let layout = layout(&config);
+        let layout = humanoid_layout(&config);
         let mut model = untrained(&config, &layout, TrainConfig::default().objective("fm")?);
         let batch = 256; // the cpu and paper presets' batch
         let (c, f) = (layout.cond_len(), layout.future_len());

@@ -409,10 +409,7 @@ pub fn load_model(dir: &Path) -> Result<TrajectoryModel> {
             );
         }
     }
-    let model = TrajectoryModel::load(dir).with_context(|| format!("loading model {}", dir.display()))?;
-    let ours = crate::model::layout(&model.config);
-    model.check_layout(&ours, "this humanoid").with_context(|| format!("model {}", dir.display()))?;
-    Ok(model)
+    flowmimic_control::load_model(dir).with_context(|| format!("loading model {}", dir.display()))
 }
 
 /// The clip a run starts from: a file, or the generated 10 s straight walk.

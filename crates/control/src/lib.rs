@@ -30,6 +30,22 @@ pub use recommended::Recommended;
 pub use rollout::{Rollout, RolloutInfo, Row};
 pub use task::{Hand, HeadingHold, JoystickSegment, Task};
 
+/// The trajectory model in `dir`, refused when its states and actions are not this humanoid's.
+pub fn load_model(dir: &std::path::Path) -> Result<flowmimic_model::TrajectoryModel, ControlError> {
+    let model = flowmimic_model::TrajectoryModel::load(dir)?;
+    model.check_layout(&humanoid_layout(&model.config), "this humanoid")?;
+    Ok(model)
+}
+
+/// The token layout of this humanoid's states and actions for `config`'s window.
+pub fn humanoid_layout(config: &flowmimic_model::ModelConfig) -> flowmimic_model::TokenLayout {
+    flowmimic_model::TokenLayout {
+        state_dim: flowmimic_sim::STATE_DIM,
+        action_dim: flowmimic_sim::NUM_DOFS,
+        spec: config.spec(),
+    }
+}
+
 #[derive(Debug, thiserror::Error)]
 pub enum ControlError {
     #[error("bad command: {what} is {value}")]
@@ -42,6 +58,8 @@ pub enum ControlError {
     NonFinite { env: usize, step: usize, index: usize },
     #[error("bad obstacle: {0}")]
     Obstacle(String),
+    #[error(transparent)]
+    Model(#[from] flowmimic_model::ModelError),
     #[error(transparent)]
     Sim(#[from] flowmimic_sim::SimError),
 }
