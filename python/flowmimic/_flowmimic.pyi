@@ -99,3 +99,23 @@ class Expert:
     def obs_dim(self) -> int: ...
     def act(self, observations: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]:
         """Deterministic normalised actions `[n, 69]` for raw observations `[n, obs_dim]`."""
+
+class Tracking:
+    """The tracking task over `envs` humanoids stepped in Rust threads (use `flowmimic.gym`)."""
+
+    def __init__(self, clip: Clip, envs: int = 1, kicks: bool = False, random_start: bool = False, seed: int = 0) -> None: ...
+    @property
+    def envs(self) -> int: ...
+    @property
+    def obs_dim(self) -> int: ...
+    @property
+    def clip_len(self) -> int: ...
+    @property
+    def frames(self) -> npt.NDArray[np.uintp]:
+        """The reference frame each environment is at."""
+    def reset_env(self, e: int, seed: Optional[int] = None) -> npt.NDArray[np.float32]:
+        """Starts environment `e` anew; its observation."""
+    def step(
+        self, actions: npt.NDArray[np.float32]
+    ) -> Tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
+        """Observations, rewards, terminated, truncated."""

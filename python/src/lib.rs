@@ -11,12 +11,13 @@ use flowmimic_geom::{CharFrame, DVec3};
 use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
 use flowmimic_motion::{Clip as Motion, GaitParams, ImportOptions};
 use flowmimic_sim::{BODY_NAMES, Humanoid, NUM_BODIES, NUM_DOFS, Obstacle, STATE_DIM, SimConfig};
+use flowmimic_track::TrackConfig;
 use flowmimic_track::ppo::Policy;
-use flowmimic_track::task::OBS_DIM;
+use flowmimic_track::task::{Ending, OBS_DIM, Reference, Tracker};
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
-use rand::SeedableRng;
+use rand::{Rng, SeedableRng};
 use std::path::PathBuf;
 use std::sync::{Arc, OnceLock};
 
@@ -416,6 +417,139 @@ impl Clip {
     }
 }
 
+/// The tracking task that `flowmimic track train` learns, over `envs` humanoids stepped in
+/// Rust threads: observations, rewards, terminations (a failed tracking, as BeyondMimic's
+/// tests) and truncations (the clip's end). `flowmimic.gym` wraps it for Gymnasium.
+#[pyclass(unsendable, module = "flowmimic._flowmimic")]
+struct Tracking {
+    reference: Reference,
+    trackers: Vec<Tracker>,
+    rngs: Vec<rand::rngs::StdRng>,
+    cfg: TrackConfig,
+    random_start: bool,
+}
+
+#[pymethods]
+impl Tracking {
+    /// `kicks`: a random push of up to 0.5 m/s every second (the kick protocol); `random_start`:
+    /// episodes start at a random frame (reference state initialisation) instead of the first.
+    #[new]
+    #[pyo3(signature = (clip, envs = 1, kicks = false, random_start = false, seed = 0))]
+    fn new(clip: &Clip, envs: usize, kicks: bool, random_start: bool, seed: u64) -> PyResult<Self> {
+        if !(1..=4096).contains(&envs) {
+            return Err(bad(format!("{envs} environments: 1 to 4096")));
+        }
+        if clip.inner.len() < 3 {
+            return Err(bad(format!(
+                "clip '{}' has {} frames; tracking needs 3 or more",
+                clip.inner.name,
+                clip.inner.len()
+            )));
+        }
+        let h = humanoid()?;
+        let cfg = TrackConfig {
+            push_max: if kicks { 0.5 } else { 0.0 },
+            push_interval: [1.0, 1.0],
+            ..TrackConfig::default()
+        };
+        Ok(Self {
+            reference: Reference::new(clip.inner.clone()),
+            trackers: (0..envs).map(|_| Tracker::new(&h)).collect(),
+            rngs: (0..envs).map(|e| rand::rngs::StdRng::seed_from_u64(seed.wrapping_add(e as u64))).collect(),
+            cfg,
+            random_start,
+        })
+    }
+
+    #[getter]
+    fn envs(&self) -> usize {
+        self.trackers.len()
+    }
+
+    /// Length of one observation.
+    #[getter]
+    fn obs_dim(&self) -> usize {
+        OBS_DIM
+    }
+
+    /// Frames of the reference clip.
+    #[getter]
+    fn clip_len(&self) -> usize {
+        self.reference.len()
+    }
+
+    /// The reference frame each environment is at.
+    #[getter]
+    fn frames<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<usize>> {
+        self.trackers.iter().map(|t| t.frame).collect::<Vec<_>>().into_pyarray(py)
+    }
+
+    /// Starts environment `e` anew (its random stream reseeded when `seed` is given); returns
+    /// its observation.
+    #[pyo3(signature = (e, seed = None))]
+    fn reset_env<'py>(&mut self, py: Python<'py>, e: usize, seed: Option<u64>) -> PyResult<Bound<'py, PyArray1<f32>>> {
+        if e >= self.envs() {
+            return Err(bad(format!("environment {e} of {}", self.envs())));
+        }
+        if let Some(s) = seed {
+            self.rngs[e] = rand::rngs::StdRng::seed_from_u64(s);
+        }
+        let rng = &mut self.rngs[e];
+        let frame = if self.random_start { rng.random_range(0..self.reference.len() - 2) } else { 0 };
+        self.trackers[e].reset(&self.reference, frame, &self.cfg, rng).map_err(bad)?;
+        let mut obs = vec![0.0; OBS_DIM];
+        self.trackers[e].observe(&self.reference, &mut obs);
+        Ok(obs.into_pyarray(py))
+    }
+
+    /// One control step of every environment with policy outputs `actions` `[E, 69]` (residuals
+    /// on the reference's next pose, scaled by the task's action scale):
+    /// `(observations [E, obs_dim], rewards [E], terminated [E], truncated [E])`. An ended
+    /// environment stays ended until `reset_env`.
+    #[allow(clippy::type_complexity)]
+    fn step<'py>(
+        &mut self,
+        py: Python<'py>,
+        actions: PyReadonlyArray2<'py, f32>,
+    ) -> PyResult<(
+        Bound<'py, PyArray2<f32>>,
+        Bound<'py, PyArray1<f32>>,
+        Bound<'py, PyArray1<bool>>,
+        Bound<'py, PyArray1<bool>>,
+    )> {
+        use rayon::prelude::*;
+        let envs = self.envs();
+        let (u, n) = rows(&actions, NUM_DOFS, "actions")?;
+        if n != envs {
+            return Err(bad(format!("{n} action rows for {envs} environments")));
+        }
+        let (reference, cfg) = (&self.reference, &self.cfg);
+        let ended: Vec<(f32, Ending, Vec<f32>)> = py.detach(|| {
+            self.trackers
+                .par_iter_mut()
+                .zip(self.rngs.par_iter_mut())
+                .zip(u.par_chunks(NUM_DOFS))
+                .map(|((t, rng), u)| {
+                    let (terms, ending) = t.step(reference, u, cfg, rng);
+                    let mut obs = vec![0.0; OBS_DIM];
+                    t.observe(reference, &mut obs);
+                    (terms.total(&cfg.reward), ending, obs)
+                })
+                .collect()
+        });
+        let mut obs = Vec::with_capacity(envs * OBS_DIM);
+        let (mut reward, mut terminated, mut truncated) = (Vec::new(), Vec::new(), Vec::new());
+        for (r, ending, o) in ended {
+            obs.extend(o);
+            reward.push(r);
+            terminated.push(matches!(ending, Ending::Failed | Ending::Diverged));
+            truncated.push(ending == Ending::ClipEnd);
+        }
+        let obs = numpy::ndarray::Array2::from_shape_vec((envs, OBS_DIM), obs).map_err(bad)?;
+        Ok((obs.into_pyarray(py), reward.into_pyarray(py), terminated.into_pyarray(py), truncated.into_pyarray(py)))
+    }
+}
+
 /// A PPO tracking expert (`flowmimic track train` writes its run directory).
 #[pyclass(frozen, module = "flowmimic._flowmimic")]
 struct Expert {
@@ -455,6 +589,7 @@ fn _flowmimic(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Controller>()?;
     m.add_class::<Clip>()?;
     m.add_class::<Expert>()?;
+    m.add_class::<Tracking>()?;
     m.add("STATE_DIM", STATE_DIM)?;
     m.add("NUM_DOFS", NUM_DOFS)?;
     m.add("BODY_NAMES", BODY_NAMES.to_vec())?;

@@ -118,3 +118,42 @@ def test_bad_input_is_refused_with_a_reason(model, tmp_path):
     with pytest.raises(ValueError, match="obs"):
         flowmimic.Expert(str(EXPERT)).act(np.zeros((1, 3), dtype=np.float32))
     assert os.path.basename(str(MODEL)) == "fm"
+
+
+def test_gymnasium_tracking_env_passes_the_checker_and_the_shipped_expert_tracks_in_it():
+    gym = pytest.importorskip("gymnasium")
+    from gymnasium.utils.env_checker import check_env
+
+    from flowmimic.gym import TrackingEnv, TrackingVectorEnv
+
+    clip = flowmimic.Clip.load(str(EXPERT / "clip.safetensors"))
+    check_env(TrackingEnv(clip, random_start=True), skip_render_check=True)
+    # The expert trained by `flowmimic track train` on this clip tracks it to its end here: the
+    # environment observes, acts and ends as the trainer's task does.
+    env, expert = TrackingEnv(clip), flowmimic.Expert(str(EXPERT))
+    obs, info = env.reset(seed=3)
+    assert info["frame"] == 0
+    rewards, steps = [], 0
+    while True:
+        obs, reward, terminated, truncated, info = env.step(expert.act(obs[None])[0])
+        rewards.append(reward)
+        steps += 1
+        if terminated or truncated:
+            break
+    assert truncated and not terminated and steps == len(clip) - 1, f"ended after {steps} of {len(clip) - 1} steps"
+    assert np.mean(rewards) > 0.5 * np.max(rewards)
+    # Vectorised: 8 at once in Rust threads, ended ones reset in the same step.
+    envs = TrackingVectorEnv(clip, num_envs=8, seed=1)
+    obs, _ = envs.reset(seed=1)
+    assert obs.shape == (8, env.observation_space.shape[0])
+    ended = 0
+    for _ in range(90):
+        # No residuals: PD on the reference alone, which topples within seconds.
+        obs, reward, terminated, truncated, info = envs.step(np.zeros((8, flowmimic.NUM_DOFS), np.float32))
+        assert reward.shape == (8,) and np.isfinite(obs).all()
+        done = terminated | truncated
+        if done.any():
+            np.testing.assert_array_equal(info["_final_obs"], done)
+            assert np.isfinite(info["final_obs"][done]).all()
+        ended += int(done.sum())
+    assert ended > 0, "no episode ended in 3 s without residuals"
