@@ -58,6 +58,7 @@ __all__ = [
     "Step",
     "cylinder",
     "generate",
+    "import_bvh",
     "import_motion",
     "sample",
     "task",
@@ -145,6 +146,11 @@ def sample(model: Model, cond: np.ndarray, nfe: int = 5, guidance: float = 0.0, 
 def import_motion(path: Union[str, os.PathLike], name: Optional[str] = None) -> Clip:
     """A BVH or DeepMimic file retargeted to the humanoid (as `flowmimic motion import`)."""
     return Clip.import_motion(os.fspath(path), name)
+
+
+def import_bvh(path: Union[str, os.PathLike], name: Optional[str] = None) -> Clip:
+    """A BVH motion capture (any human skeleton) retargeted to the humanoid: `import_motion`."""
+    return import_motion(path, name)
 
 
 def generate(name: str = "walk", **gait: float) -> Clip:

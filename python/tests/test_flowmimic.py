@@ -84,7 +84,7 @@ def test_clips_round_trip_and_import(tmp_path):
     np.testing.assert_array_equal(again.qpos, clip.qpos)
     assert clip.body_positions.shape == (len(clip), 24, 3)
     if MOCAP.exists():
-        captured = flowmimic.import_motion(MOCAP)
+        captured = flowmimic.import_bvh(MOCAP)
         assert captured.name == "02_01" and len(captured) > 30
 
 
