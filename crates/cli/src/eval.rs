@@ -31,7 +31,8 @@ pub struct Common {
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Write each point's rollout (every trial, for `flowmimic view` and `render --env`) in
-    /// OUT/rollouts when its trials run (a point already in OUT's CSV is not run again).
+    /// OUT/rollouts when its trials run (a point already in OUT's CSV is not run again: give a
+    /// new --out).
     #[arg(long)]
     save_rollouts: bool,
     /// Actions of each sampled trajectory executed before sampling again (1 = the paper).
@@ -112,7 +113,7 @@ pub enum EvalCommand {
     },
     /// Walk to a goal 8-10 m ahead through standing cylinders (10-20 drawn, as many as fit 1 m
     /// apart) or, --moving, 2-3 crossing the way, in 20 s: success (arrived within 0.5 m, no
-    /// contact, no fall), per trial too.
+    /// contact, no fall), per trial too (--quick: 4 trials, still 20 s each).
     Forest {
         #[command(flatten)]
         common: Common,
@@ -178,9 +179,10 @@ pub enum EvalCommand {
         #[arg(long)]
         guided: Option<f32>,
     },
-    /// What a saved rollout (`flowmimic run`, `play`'s record button, `demo`) achieved: each
-    /// joystick segment's speeds against the asked ones and in how many environments it was
-    /// followed, the hand's closest approach, the way to the goal, the falls.
+    /// What a saved rollout (`flowmimic run`, `play`'s record button, `demo`, `eval
+    /// --save-rollouts`) achieved: each joystick segment's speeds against the asked ones and in
+    /// how many environments it was followed, the hand's closest approach, the way to the goal,
+    /// the obstacles touched, the falls.
     Outcome {
         /// A .rollout.safetensors file.
         rollout: PathBuf,

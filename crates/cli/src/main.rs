@@ -200,8 +200,8 @@ enum Command {
         record_dir: PathBuf,
     },
     /// The paper's experiments and a few more: survival, joystick, reach, waypoint, compose,
-    /// quality, guidance, latency. Each writes CSV, JSON and plots and appends to
-    /// <out>/report.md.
+    /// forest, quality, guidance, latency. Each writes CSV, JSON and plots and appends to
+    /// <out>/report.md; `eval outcome` reads a saved rollout.
     #[command(subcommand)]
     Eval(eval::EvalCommand),
     /// Rollout datasets: inspect them, compute window statistics.

@@ -267,7 +267,9 @@ pub(crate) fn schedule(text: &str) -> Result<Vec<JoystickSegment>> {
 /// Obstacles from `--obstacles`: a file (`.toml`: `[[obstacle]]` tables; `.json`: a list) or
 /// inline cylinders `x,y,radius[@vx,vy]` separated by `;`.
 pub(crate) fn obstacles(spec: &str) -> Result<Vec<Obstacle>> {
-    let path = Path::new(spec);
+    // A file that is not here is looked up in the checkout (examples/obstacles.toml from anywhere).
+    let resolved = crate::paths::resolve(Path::new(spec));
+    let path = resolved.as_path();
     let list: Vec<serde_json::Value> = match path.extension().and_then(|e| e.to_str()) {
         Some("toml") => {
             let text = flowmimic_io::read_to_string(path)?;
@@ -287,6 +289,7 @@ pub(crate) fn obstacles(spec: &str) -> Result<Vec<Obstacle>> {
         _ => {
             return spec
                 .split(';')
+                .filter(|one| !one.trim().is_empty())
                 .enumerate()
                 .map(|(i, one)| {
                     let (place, velocity) = match one.split_once('@') {
@@ -305,12 +308,12 @@ pub(crate) fn obstacles(spec: &str) -> Result<Vec<Obstacle>> {
         .enumerate()
         .map(|(i, v)| {
             let at = || format!("{spec}: obstacle {}", i + 1);
-            let unknown: Vec<&String> = match &v {
-                serde_json::Value::Object(m) => m.keys().filter(|k| !Obstacle::KEYS.contains(&k.as_str())).collect(),
-                _ => bail!("{}: not a table of an obstacle's keys", at()),
-            };
+            let Some(table) = v.as_object() else { bail!("{}: not a table of an obstacle's keys", at()) };
+            let kind = table.get("type").and_then(|t| t.as_str()).unwrap_or("");
+            let keys = Obstacle::keys(kind);
+            let unknown: Vec<&String> = table.keys().filter(|k| !keys.contains(&k.as_str())).collect();
             if !unknown.is_empty() {
-                bail!("{}: unknown key {unknown:?} (an obstacle has {:?})", at(), Obstacle::KEYS);
+                bail!("{}: unknown key {unknown:?} for a {kind:?} obstacle (it has {keys:?})", at());
             }
             let o: Obstacle = serde_json::from_value(v).with_context(at)?;
             o.validate().map_err(|e| anyhow::anyhow!("{}: {e}", at()))?;
@@ -473,7 +476,18 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     // task as the first one sees it from where it starts.
     let history = model.layout().spec.history;
     let first = start_pose(&clip, history, 0);
-    let tasks = (0..args.envs).map(|e| task.moved(&first, &start_pose(&clip, history, e))).collect();
+    let tasks: Vec<_> = (0..args.envs).map(|e| task.moved(&first, &start_pose(&clip, history, e))).collect();
+    // An obstacle on the humanoid where it starts is a fall waiting: say so.
+    for (i, o) in task.obstacles.iter().enumerate() {
+        if o.distance([first.origin.x, first.origin.y], 0.0).0 < 0.3 {
+            eprintln!(
+                "note: obstacle {} stands within 0.3 m of where the humanoid starts ({:.2}, {:.2})",
+                i + 1,
+                first.origin.x,
+                first.origin.y
+            );
+        }
+    }
     let rollout =
         flowmimic_control::run(&model, humanoid, &clip, tasks, &control, &model_dir.display().to_string(), status)?;
     rollout.save(&out)?;

@@ -517,7 +517,7 @@ fn obstacles_come_from_files_and_the_command_line() {
     let again = ok(&dir, &["eval", "outcome", "r.rollout.safetensors"]);
     assert!(again.contains("obstacles: touched in 0 of 1"), "the rollout keeps its obstacles:\n{again}");
     // A post just ahead of a humanoid that walks on, unguided: it walks into it.
-    let text = ok(&dir, &["run", "--obstacles", "0.6,0,0.3", "--seconds", "2"]);
+    let text = ok(&dir, &["run", "--obstacles", "0.6,0,0.3;", "--seconds", "2"]);
     assert!(text.contains("obstacles: touched in 1 of 1"), "{text}");
 
     let refused = |args: &[&str], words: &[&str]| {
@@ -534,6 +534,9 @@ fn obstacles_come_from_files_and_the_command_line() {
     )
     .unwrap();
     refused(&["run", "--obstacles", "cone.json"], &["cone.json", "obstacle 2", "cone"]);
+    std::fs::write(dir.join("both.toml"), "[[obstacle]]\ntype = \"cylinder\"\nradius = 0.3\nhalf = [1, 1]\nat = [1, 2]\n")
+        .unwrap();
+    refused(&["run", "--obstacles", "both.toml"], &["both.toml", "obstacle 1", "half", "cylinder"]);
     refused(&["run", "--obstacles", "1,2"], &["expected 3 numbers"]);
     refused(&["run", "--obstacles", "1,2,0.3;4,0,-1"], &["obstacle 2", "size -1"]);
     refused(&["run", "--obstacles", "missing.toml"], &["missing.toml"]);

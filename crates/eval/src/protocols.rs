@@ -84,6 +84,7 @@ impl Bench<'_> {
             if let Err(e) = saved.and_then(|()| r.save(&dir.join(&file)).map_err(|e| e.to_string())) {
                 return Err(ControlError::Start(format!("cannot write the rollout {file} in {}: {e}", dir.display())));
             }
+            eprintln!("wrote {}", dir.join(&file).display());
         }
         Ok(r)
     }

@@ -38,8 +38,15 @@ fn default_height() -> f64 {
 impl Obstacle {
     /// Height of an obstacle when none is given (m): taller than the humanoid.
     pub const HEIGHT: f64 = 2.0;
-    /// The keys an obstacle is written with (JSON, TOML).
-    pub const KEYS: [&str; 7] = ["type", "radius", "half", "yaw", "at", "velocity", "height"];
+    /// The keys an obstacle of footprint type `kind` (`cylinder`, `box`) is written with in JSON
+    /// or TOML; any type's keys for another `kind`.
+    pub fn keys(kind: &str) -> &'static [&'static str] {
+        match kind {
+            "cylinder" => &["type", "radius", "at", "velocity", "height"],
+            "box" => &["type", "half", "yaw", "at", "velocity", "height"],
+            _ => &["type", "radius", "half", "yaw", "at", "velocity", "height"],
+        }
+    }
 
     /// A standing cylinder.
     pub fn cylinder(at: [f64; 2], radius: f64) -> Self {
