@@ -3,8 +3,8 @@
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use flowmimic_motion::{
-    Clip, CorpusParams, Coverage, GaitParams, ImportOptions, Segment, Units, UpAxis, WanderParams, coverage, generator,
-    reach::Reaching,
+    Clip, CorpusParams, Coverage, GaitParams, ImportOptions, Segment, Units, UpAxis, WanderParams,
+    clip::BODY_SPEED_JUMP, coverage, generator, reach::Reaching,
 };
 use flowmimic_plot::{Chart, Series, histogram};
 use flowmimic_sim::Humanoid;
@@ -173,7 +173,7 @@ impl GaitArgs {
 
 fn header() {
     println!(
-        "{:<24} {:>6} {:>6} {:>6} {:>6} {:>7} {:>7} {:>6} {:>6} {:>6} {:>6} {:>6} {:>6} {:>6}",
+        "{:<24} {:>6} {:>6} {:>6} {:>6} {:>7} {:>7} {:>6} {:>6} {:>6} {:>6} {:>6} {:>6} {:>6} {:>7}",
         "clip",
         "frames",
         "sec",
@@ -187,7 +187,8 @@ fn header() {
         "turn",
         "side",
         "h>1.1",
-        "h>1.4"
+        "h>1.4",
+        "v max"
     );
 }
 
@@ -195,7 +196,7 @@ fn row(humanoid: &Arc<Humanoid>, clip: &Clip) {
     let q = clip.quality(humanoid);
     let cov = Coverage::of(clip.walking_velocities());
     println!(
-        "{:<24} {:>6} {:>6.2} {:>6.2} {:>6.3} {:>7.2} {:>7.3} {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}%",
+        "{:<24} {:>6} {:>6.2} {:>6.2} {:>6.3} {:>7.2} {:>7.3} {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>6.1}{}",
         clip.name,
         q.frames,
         q.duration,
@@ -209,7 +210,10 @@ fn row(humanoid: &Arc<Humanoid>, clip: &Clip) {
         100.0 * cov.turning,
         100.0 * cov.sidestep,
         100.0 * q.hand_high,
-        100.0 * q.hand_overhead
+        100.0 * q.hand_overhead,
+        q.body_speed_max,
+        // A clip whose bodies jump between frames: no expert can follow it.
+        if q.body_speed_max > BODY_SPEED_JUMP { "  JUMPS" } else { "" }
     );
 }
 

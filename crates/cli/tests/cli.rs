@@ -534,8 +534,11 @@ fn obstacles_come_from_files_and_the_command_line() {
     )
     .unwrap();
     refused(&["run", "--obstacles", "cone.json"], &["cone.json", "obstacle 2", "cone"]);
-    std::fs::write(dir.join("both.toml"), "[[obstacle]]\ntype = \"cylinder\"\nradius = 0.3\nhalf = [1, 1]\nat = [1, 2]\n")
-        .unwrap();
+    std::fs::write(
+        dir.join("both.toml"),
+        "[[obstacle]]\ntype = \"cylinder\"\nradius = 0.3\nhalf = [1, 1]\nat = [1, 2]\n",
+    )
+    .unwrap();
     refused(&["run", "--obstacles", "both.toml"], &["both.toml", "obstacle 1", "half", "cylinder"]);
     refused(&["run", "--obstacles", "1,2"], &["expected 3 numbers"]);
     refused(&["run", "--obstacles", "1,2,0.3;4,0,-1"], &["obstacle 2", "size -1"]);

@@ -240,7 +240,18 @@ impl Clip {
             airborne: (n - single - double) as f64 / n as f64,
             hand_high: self.share_with_hand_above(HAND_HIGH),
             hand_overhead: self.share_with_hand_above(HAND_OVERHEAD),
+            body_speed_max: self.body_speed_max(),
         }
+    }
+
+    /// The fastest any body moves between two frames, m/s.
+    pub fn body_speed_max(&self) -> f64 {
+        let fps = CONTROL_HZ;
+        self.bodies
+            .windows(2)
+            .flat_map(|w| (0..NUM_BODIES).map(move |b| w[1].pos[b].distance(w[0].pos[b])))
+            .fold(0.0, f64::max)
+            * fps
     }
 
     /// Fraction of frames in which either hand is higher than `height`, m.
@@ -427,7 +438,13 @@ pub struct Quality {
     /// Fractions of frames with a hand (either) above [`HAND_HIGH`] and [`HAND_OVERHEAD`].
     pub hand_high: f64,
     pub hand_overhead: f64,
+    /// The fastest any body moves from one frame to the next, m/s: a person's hand peaks near
+    /// 3 m/s; far beyond, the clip jumps (a retargeting glitch no expert can follow).
+    pub body_speed_max: f64,
 }
+
+/// Frame-to-frame body speed (m/s) beyond which a clip is taken to jump.
+pub const BODY_SPEED_JUMP: f64 = 6.0;
 
 /// Heights that tell reaching apart from walking, m: a walking hand swings 0.7-1.1 m high, a
 /// hand above 1.1 m reaches for a table or shelf, above 1.4 m for a high shelf.

@@ -111,7 +111,12 @@ fn wandering_walks_cover_what_people_do_and_differ_by_seed() {
     assert!(cov.ranges[0].1 > 1.3 && cov.ranges[0].0 < -0.5, "forward speeds {:?}", cov.ranges[0]);
     for q in clips.iter().map(|c| c.quality(&h)) {
         assert!(q.penetration_max < 0.01 && q.airborne == 0.0, "{q:?}");
+        assert!(q.body_speed_max < flowmimic_motion::clip::BODY_SPEED_JUMP, "a wandering walk jumps: {q:?}");
     }
+    // A hand moved 0.3 m in one frame (a retargeting glitch) is a jump of 9 m/s.
+    let mut glitch = clips[0].clone();
+    glitch.bodies[40].pos[flowmimic_sim::skeleton::body::R_HAND].z += 0.3;
+    assert!((glitch.body_speed_max() - 0.3 * 30.0).abs() < 1.0, "{}", glitch.body_speed_max());
 }
 
 #[test]
