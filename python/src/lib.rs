@@ -10,7 +10,7 @@ use flowmimic_control::{ControlConfig, Controller as Driver, Layout, Recommended
 use flowmimic_geom::{CharFrame, DVec3};
 use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
 use flowmimic_motion::{Clip as Motion, GaitParams, ImportOptions};
-use flowmimic_sim::{BODY_NAMES, Humanoid, NUM_BODIES, NUM_DOFS, STATE_DIM, SimConfig};
+use flowmimic_sim::{BODY_NAMES, Humanoid, NUM_BODIES, NUM_DOFS, Obstacle, STATE_DIM, SimConfig};
 use flowmimic_track::TrackConfig;
 use flowmimic_track::ppo::Policy;
 use flowmimic_track::task::{Ending, OBS_DIM, Reference, Tracker};
@@ -35,21 +35,6 @@ fn humanoid() -> PyResult<Arc<Humanoid>> {
     }
     let h = Humanoid::new(SimConfig::default()).map_err(|e| PyRuntimeError::new_err(e.to_string()))?;
     Ok(Arc::clone(HUMANOID.get_or_init(|| h)))
-}
-
-/// `values` as a NumPy array of `rows` rows of `width`, owning the vector (no copy).
-fn matrix<T: numpy::Element>(
-    py: Python<'_>,
-    values: Vec<T>,
-    rows: usize,
-    width: usize,
-) -> PyResult<Bound<'_, PyArray2<T>>> {
-    Ok(numpy::ndarray::Array2::from_shape_vec((rows, width), values).map_err(bad)?.into_pyarray(py))
-}
-
-/// World positions of the 24 bodies of `rows` poses, `[rows, 24, 3]`, owning the vector.
-fn body_array(py: Python<'_>, flat: Vec<f64>, rows: usize) -> PyResult<Bound<'_, PyArray3<f64>>> {
-    Ok(numpy::ndarray::Array3::from_shape_vec((rows, NUM_BODIES, 3), flat).map_err(bad)?.into_pyarray(py))
 }
 
 /// A 2-d array's rows as one slice of its own memory (no copy), checked to have `width`
@@ -172,7 +157,7 @@ impl Model {
             })
             .map_err(bad)?;
         let width = self.future_len();
-        matrix(py, futures, n, width)
+        numpy::ndarray::Array2::from_shape_vec((n, width), futures).map(|a| a.into_pyarray(py)).map_err(bad)
     }
 
     fn __repr__(&self) -> String {
@@ -194,7 +179,8 @@ self_cell::self_cell!(
 struct Controller {
     cell: Cell,
     clip: Motion,
-    envs: usize,
+    /// Obstacles placed in each environment's world.
+    placed: Vec<Vec<Obstacle>>,
     time: f64,
     settings: Settings,
 }
@@ -229,13 +215,13 @@ impl Controller {
         };
         let cell =
             Cell::try_new(Arc::clone(&model.inner), |m| Driver::new(m, &h, &clip, envs, &config)).map_err(bad)?;
-        Ok(Self { cell, clip, envs, time: 0.0, settings })
+        Ok(Self { cell, clip, placed: vec![Vec::new(); envs], time: 0.0, settings })
     }
 
     /// Environments.
     #[getter]
     fn envs(&self) -> usize {
-        self.envs
+        self.placed.len()
     }
 
     /// Seconds since the last reset.
@@ -301,6 +287,12 @@ impl Controller {
                 Ok(task)
             })
             .collect::<PyResult<Vec<Task>>>()?;
+        for (e, task) in tasks.iter().enumerate() {
+            if task.obstacles != self.placed[e] {
+                self.cell.with_dependent_mut(|_, c| c.place_obstacles(e, &task.obstacles)).map_err(bad)?;
+                self.placed[e] = task.obstacles.clone();
+            }
+        }
         let time = self.time;
         let outcome = {
             let cell = &mut self.cell;
@@ -322,9 +314,10 @@ impl Controller {
             }
         });
         let fell: Vec<bool> = (0..envs).map(|e| outcome.fell.contains(&e)).collect();
+        let grid = |v: Vec<f32>, w: usize| numpy::ndarray::Array2::from_shape_vec((envs, w), v).map_err(bad);
         Ok((
-            matrix(py, states, envs, STATE_DIM)?,
-            matrix(py, actions, envs, NUM_DOFS)?,
+            grid(states, STATE_DIM)?.into_pyarray(py),
+            grid(actions, NUM_DOFS)?.into_pyarray(py),
             fell.into_pyarray(py),
             alive.into_pyarray(py),
             touching.into_pyarray(py),
@@ -337,7 +330,7 @@ impl Controller {
         let flat: Vec<f64> = self.cell.with_dependent(|_, c| {
             (0..envs).flat_map(|e| c.env(e).bodies().pos.into_iter().flat_map(|p| p.to_array())).collect()
         });
-        body_array(py, flat, envs)
+        numpy::ndarray::Array3::from_shape_vec((envs, NUM_BODIES, 3), flat).map(|a| a.into_pyarray(py)).map_err(bad)
     }
 }
 
@@ -397,7 +390,7 @@ impl Clip {
     fn qpos<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
         let flat: Vec<f64> = self.inner.qpos.iter().flatten().copied().collect();
         let width = self.inner.qpos.first().map_or(0, Vec::len);
-        matrix(py, flat, self.inner.len(), width)
+        numpy::ndarray::Array2::from_shape_vec((self.inner.len(), width), flat).map(|a| a.into_pyarray(py)).map_err(bad)
     }
 
     /// World positions of the 24 bodies per frame, `[T, 24, 3]`.
@@ -405,14 +398,18 @@ impl Clip {
     fn body_positions<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray3<f64>>> {
         let flat: Vec<f64> =
             self.inner.bodies.iter().flat_map(|b| b.pos.into_iter().flat_map(|p| p.to_array())).collect();
-        body_array(py, flat, self.inner.len())
+        numpy::ndarray::Array3::from_shape_vec((self.inner.len(), NUM_BODIES, 3), flat)
+            .map(|a| a.into_pyarray(py))
+            .map_err(bad)
     }
 
     /// The model's 165-d state per frame, `[T, 165]`.
     #[getter]
     fn states<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f32>>> {
         let flat: Vec<f32> = self.inner.bodies.iter().flat_map(|b| b.state()).collect();
-        matrix(py, flat, self.inner.len(), STATE_DIM)
+        numpy::ndarray::Array2::from_shape_vec((self.inner.len(), STATE_DIM), flat)
+            .map(|a| a.into_pyarray(py))
+            .map_err(bad)
     }
 
     fn __repr__(&self) -> String {
@@ -548,12 +545,8 @@ impl Tracking {
             terminated.push(matches!(ending, Ending::Failed | Ending::Diverged));
             truncated.push(ending == Ending::ClipEnd);
         }
-        Ok((
-            matrix(py, obs, envs, OBS_DIM)?,
-            reward.into_pyarray(py),
-            terminated.into_pyarray(py),
-            truncated.into_pyarray(py),
-        ))
+        let obs = numpy::ndarray::Array2::from_shape_vec((envs, OBS_DIM), obs).map_err(bad)?;
+        Ok((obs.into_pyarray(py), reward.into_pyarray(py), terminated.into_pyarray(py), truncated.into_pyarray(py)))
     }
 }
 
@@ -586,7 +579,7 @@ impl Expert {
     ) -> PyResult<Bound<'py, PyArray2<f32>>> {
         let (obs, n) = rows(&observations, OBS_DIM, "observations")?;
         let actions = py.detach(|| self.policy.act(obs, n));
-        matrix(py, actions, n, NUM_DOFS)
+        numpy::ndarray::Array2::from_shape_vec((n, NUM_DOFS), actions).map(|a| a.into_pyarray(py)).map_err(bad)
     }
 }
 

@@ -276,19 +276,22 @@ impl<'m> Controller<'m> {
         self.plans[e].as_ref().map(|p| p.0.as_slice())
     }
 
+    /// Puts environment `e` in a world with `obstacles` (world frame; they replace any it had),
+    /// keeping its state: a model of its own is compiled (milliseconds).
+    pub fn place_obstacles(&mut self, e: usize, obstacles: &[Obstacle]) -> Result<(), ControlError> {
+        let world = self.envs[e].humanoid().with_obstacles(obstacles)?;
+        Ok(self.envs[e].enter(world)?)
+    }
+
     /// A planar root-velocity push on environment `e` now (m/s, world frame).
     pub fn kick(&mut self, e: usize, velocity: [f64; 2]) -> Result<(), ControlError> {
         Ok(self.envs[e].kick(velocity)?)
     }
 
-    /// One control step: every environment's world holds its task's obstacles (placed anew when
-    /// they change), and every environment still standing samples a plan if its last one is
+    /// One control step: every environment still standing samples a plan if its last one is
     /// used up (all in one batched model call, steered by its task's cost at `time`),
     /// executes the next action, and is checked for a fall.
     pub fn step(&mut self, tasks: &[Task], time: f64) -> Result<StepOutcome, ControlError> {
-        for (env, task) in self.envs.iter_mut().zip(tasks) {
-            place_obstacles(env, &task.obstacles)?;
-        }
         let model = self.model;
         let layout = model.layout();
         let traj = Layout { horizon: layout.spec.horizon };
@@ -388,16 +391,6 @@ impl<'m> Controller<'m> {
     }
 }
 
-/// Puts `env` in a world with `obstacles` (world frame, where they stand at time 0) unless it is
-/// in one already, keeping its state: a model of its own is compiled (milliseconds).
-fn place_obstacles(env: &mut Env, obstacles: &[Obstacle]) -> Result<(), ControlError> {
-    if env.humanoid().obstacles() != obstacles {
-        let world = env.humanoid().with_obstacles(obstacles)?;
-        env.enter(world)?;
-    }
-    Ok(())
-}
-
 /// Moves each plan's first action the share `beta` of the way to what the model's inverse
 /// dynamics reads out of the current state (the last of each conditioning) and the plan's next
 /// state. The model's actions are clean expert actions, nearly independent of the states that
@@ -441,6 +434,9 @@ pub fn run(
         task.validate()?;
     }
     let mut controller = Controller::new(model, humanoid, clip, tasks.len(), config)?;
+    for (e, task) in tasks.iter().enumerate().filter(|(_, t)| !t.obstacles.is_empty()) {
+        controller.place_obstacles(e, &task.obstacles)?;
+    }
     let envs_n = tasks.len();
     let steps = (config.seconds * CONTROL_HZ).round() as usize;
     let mut out = Rollout::new(

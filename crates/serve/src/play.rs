@@ -389,6 +389,7 @@ impl Simulation<'_> {
         let period = Duration::from_secs_f64(1.0 / CONTROL_HZ);
         let mut rng = rand::rngs::StdRng::seed_from_u64(self.config.control.seed);
         let (mut time, mut stopped, mut recording) = (0.0, None::<String>, None::<Recording>);
+        let mut placed: Vec<Obstacle> = Vec::new();
         let mut step_starts = std::collections::VecDeque::new();
         // Headings of the last half second: the yaw rate over it (a step's own swings with the gait).
         let mut headings = std::collections::VecDeque::new();
@@ -433,6 +434,12 @@ impl Simulation<'_> {
                             physics_ms: Vec::new(),
                         })
                     }
+                }
+            }
+            if inputs.obstacles != placed {
+                match controller.place_obstacles(0, &inputs.obstacles) {
+                    Ok(()) => placed = inputs.obstacles.clone(),
+                    Err(e) => self.notice(format!("obstacles not placed: {e}")),
                 }
             }
             let bodies = controller.env(0).bodies();
