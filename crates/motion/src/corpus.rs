@@ -2,6 +2,7 @@
 //! walking captures of a folder and, unless walking only, the captures of its `arms/` (hands
 //! busy, 0.1-1.9 m high) and `walks/` subfolders.
 
+use crate::clip::BODY_SPEED_JUMP;
 use crate::generator::{GaitParams, WanderParams, generate, wander};
 use crate::reach::Reaching;
 use crate::{Clip, ImportOptions, MotionError, import};
@@ -64,7 +65,8 @@ pub struct Corpus {
 
 /// Builds the corpus: the wandering walks, the backward walk ([`backward_walk`]), the reaching
 /// walks and standing reaches, the walks of transitions, then every
-/// capture of the folder in name order that walks (mean speed at most [`MAX_WALKING_SPEED`]),
+/// capture of the folder in name order that walks (mean speed at most [`MAX_WALKING_SPEED`])
+/// and does not jump (no body faster than [`BODY_SPEED_JUMP`] between two frames),
 /// then those of its [`SUBFOLDERS`] that exist, each in name order.
 pub fn corpus(humanoid: &Arc<Humanoid>, p: &CorpusParams) -> Result<Corpus, MotionError> {
     let mut clips = Vec::new();
@@ -101,9 +103,12 @@ pub fn corpus(humanoid: &Arc<Humanoid>, p: &CorpusParams) -> Result<Corpus, Moti
         }
         for file in files {
             let clip = import(humanoid, &file, &ImportOptions::default())?.clip;
-            let speed = clip.quality(humanoid).speed;
-            if speed > MAX_WALKING_SPEED {
-                left_out.push((file, format!("moves at {speed:.1} m/s, not a walk")));
+            let quality = clip.quality(humanoid);
+            if quality.speed > MAX_WALKING_SPEED {
+                left_out.push((file, format!("moves at {:.1} m/s, not a walk", quality.speed)));
+            } else if quality.body_speed_max > BODY_SPEED_JUMP {
+                let why = format!("jumps: a body moves {:.1} m/s between two frames", quality.body_speed_max);
+                left_out.push((file, why));
             } else {
                 clips.push(clip);
             }

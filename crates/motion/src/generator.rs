@@ -617,7 +617,7 @@ fn landmarks_aimed(schedule: &Schedule, aim: &[DVec3]) -> Result<LandmarkClip, M
                     let pole = chest_rot * DVec3::new(-0.5, sign * 0.5, -0.7);
                     // On the way, the hand bows out to the side, clear of the hips.
                     let out = chest_rot * DVec3::new(0.0, sign * 0.3 * w * (1.0 - w), 0.0);
-                    let (e, h) = reach::arm(shoulder, hand.lerp(aimed, w) + out, pole);
+                    let (e, h) = reach::arm(shoulder, reach::hand_path(shoulder, hand, aimed, w) + out, pole);
                     let early = (w / 0.3).min(1.0);
                     (elbow, wrist) = (elbow.lerp(e, early), wrist.lerp(h, early));
                 }
@@ -674,11 +674,22 @@ fn clip_of(
     for _ in 0..AIM_PASSES {
         let (clip, report) = &out;
         aim.resize(clip.len(), DVec3::ZERO);
-        for (i, a) in aim.iter_mut().enumerate() {
-            if let Some((k, _)) = schedule.reach_at(i as f64 / CONTROL_HZ) {
-                let hand = [body::L_HAND, body::R_HAND][schedule.reaches[k].side];
-                let miss = clip.bodies[i].pos[hand] - report.placement.apply(i, targets[k]);
-                *a -= yaw_quat(report.placement.yaw) * miss / report.placement.scale;
+        // The miss is measured while the hand holds; on the way out and back the hand aims
+        // where it will hold (a miss measured there would count the way as a miss).
+        for (k, (r, target)) in schedule.reaches.iter().zip(&targets).enumerate() {
+            let frames = |t: f64| ((t * CONTROL_HZ).round() as usize).min(clip.len() - 1);
+            let (hold_start, hold_end) = (frames(r.hold_start()).max(1), frames(r.hold_end()));
+            let hand = [body::L_HAND, body::R_HAND][r.side];
+            for i in hold_start..=hold_end {
+                let miss = clip.bodies[i].pos[hand] - report.placement.apply(i, *target);
+                aim[i] -= yaw_quat(report.placement.yaw) * miss / report.placement.scale;
+            }
+            let during = |i: usize| schedule.reach_at(i as f64 / CONTROL_HZ).is_some_and(|(j, _)| j == k);
+            for i in (0..hold_start).rev().take_while(|&i| during(i)) {
+                aim[i] = aim[hold_start];
+            }
+            for i in (hold_end + 1..clip.len()).take_while(|&i| during(i)) {
+                aim[i] = aim[hold_end];
             }
         }
         out = retarget(humanoid, &landmarks_aimed(schedule, &aim)?, name, origin, false)?;

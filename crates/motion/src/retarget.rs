@@ -23,7 +23,10 @@
 //!    chest-to-head rotation in halves; toes stay level when the heel rises; clavicles,
 //!    wrists and hands keep their nominal (zero) angles: the sources do not measure them.
 //! 4. Local rotations become the three hinge angles (intrinsic x-y-z Euler, as MuJoCo chains
-//!    the hinges), clamped to the joint ranges (the count is reported).
+//!    the hinges). A rotation the ranges do not hold (counted and reported) becomes the
+//!    in-range angles whose rotation is nearest it, near the previous frame's: clamping each
+//!    angle alone sent an arm raised past the shoulder's range from one end of a range to the
+//!    other where the Euler angle wrapped (the hand 0.8 m in a frame).
 //! 5. The pelvis sits above the hip centre as in the humanoid; the clip is moved to start at
 //!    the origin facing +x, and each frame is lowered or raised by the lowest sole point's
 //!    height averaged over 0.2 s, so the stance foot stays on the ground although the
@@ -32,9 +35,10 @@
 use crate::MotionError;
 use crate::clip::Clip;
 use crate::landmarks::{Landmark as L, LandmarkClip, Pose};
-use flowmimic_geom::{DMat3, DQuat, DVec3, euler_xyz, heading, yaw_quat};
+use flowmimic_geom::{DMat3, DQuat, DVec3, euler_xyz, from_euler_xyz, heading, yaw_quat};
 use flowmimic_sim::skeleton::{BODY_PARENTS, BodySpec, NUM_BODIES, bodies, body as b};
 use flowmimic_sim::{CONTROL_HZ, Humanoid, NUM_DOFS};
+use std::f64::consts::{PI, TAU};
 
 /// Bodies whose joints keep their nominal angles: the sources do not measure them reliably.
 const UNMEASURED: [usize; 6] = [b::L_THORAX, b::R_THORAX, b::L_WRIST, b::R_WRIST, b::L_HAND, b::R_HAND];
@@ -100,6 +104,100 @@ fn stance_foot_slope(frames: &[Pose], ankle: L, toe: L) -> f64 {
     by_speed.sort_by(|a, b| a.0.total_cmp(&b.0));
     let keep = (by_speed.len() * 3 / 10).max(1);
     median(by_speed[..keep].iter().map(|x| x.1).collect())
+}
+
+/// The hinge ranges of one joint, radians, and the direction of its bone (toward its first
+/// child) in the body's frame.
+struct Joint {
+    lower: [f64; 3],
+    upper: [f64; 3],
+    bone: DVec3,
+}
+
+/// Weights of the terms of [`Joint::nearest`]'s search: where the bone points (a child's
+/// position) counts before how the body turns about it, and nearness to the previous frame's
+/// angles keeps a run of frames on one side of a range.
+const BONE_WEIGHT: f64 = 3.0;
+const CONTINUITY: f64 = 0.1;
+/// How much lower (squared radians) another solution's cost must be to leave the previous
+/// frame's: without it the angles hop between two about as near (an arm raised past the
+/// shoulder's range, 20 m/s hands).
+const SWITCH_MARGIN: f64 = 0.5;
+/// Gauss-Newton steps of the search for in-range angles.
+const NEAREST_STEPS: usize = 20;
+
+impl Joint {
+    fn clamp(&self, e: [f64; 3]) -> [f64; 3] {
+        std::array::from_fn(|k| e[k].clamp(self.lower[k], self.upper[k]))
+    }
+
+    /// What the angles `h` miss of the rotation `q`, weighted: the bone's direction, the
+    /// rotation (a rotation vector), and the distance to `previous`.
+    fn residual(&self, q: DQuat, h: [f64; 3], previous: Option<[f64; 3]>) -> [f64; 9] {
+        let r = from_euler_xyz(h);
+        let bone = BONE_WEIGHT * (r * self.bone - q * self.bone);
+        let mut miss = q.conjugate() * r;
+        if miss.w < 0.0 {
+            miss = -miss;
+        }
+        let miss = miss.to_scaled_axis();
+        let p = previous.unwrap_or(h);
+        let c = CONTINUITY.sqrt();
+        [bone.x, bone.y, bone.z, miss.x, miss.y, miss.z, c * (h[0] - p[0]), c * (h[1] - p[1]), c * (h[2] - p[2])]
+    }
+
+    fn cost(&self, q: DQuat, h: [f64; 3], previous: Option<[f64; 3]>) -> f64 {
+        self.residual(q, h, previous).iter().map(|r| r * r).sum()
+    }
+
+    /// In-range hinge angles for the local rotation `q`, and how many of its Euler angles lie
+    /// outside the range (0: they are returned as they are). Otherwise a search from the
+    /// previous frame's angles, and from the clamped Euler angles of either solution, which win
+    /// only by [`SWITCH_MARGIN`].
+    fn nearest(&self, q: DQuat, previous: Option<[f64; 3]>) -> ([f64; 3], usize) {
+        let e = euler_xyz(q);
+        let outside = (0..3).filter(|&k| !(self.lower[k]..=self.upper[k]).contains(&e[k])).count();
+        if outside == 0 {
+            return (e, 0);
+        }
+        let wrap = |a: f64| (a + PI).rem_euclid(TAU) - PI;
+        // The other Euler solution of the same rotation.
+        let other = [wrap(e[0] + PI), wrap(PI - e[1]), wrap(e[2] + PI)];
+        let fresh = [e, other]
+            .map(|h| self.descend(q, self.clamp(h), previous))
+            .into_iter()
+            .min_by(|a, b| self.cost(q, *a, previous).total_cmp(&self.cost(q, *b, previous)))
+            .expect("two starts");
+        let best = match previous.map(|p| self.descend(q, p, previous)) {
+            Some(kept) if self.cost(q, kept, previous) <= self.cost(q, fresh, previous) + SWITCH_MARGIN => kept,
+            _ => fresh,
+        };
+        (best, outside)
+    }
+
+    /// Projected Gauss-Newton from `h` on [`Joint::residual`], finite-difference Jacobian.
+    fn descend(&self, q: DQuat, mut h: [f64; 3], previous: Option<[f64; 3]>) -> [f64; 3] {
+        for _ in 0..NEAREST_STEPS {
+            let r = self.residual(q, h, previous);
+            let jacobian: [[f64; 9]; 3] = std::array::from_fn(|k| {
+                let mut shifted = h;
+                shifted[k] += 1e-6;
+                let rs = self.residual(q, shifted, previous);
+                std::array::from_fn(|m| (rs[m] - r[m]) / 1e-6)
+            });
+            let dot = |a: &[f64; 9], b: &[f64; 9]| (0..9).map(|m| a[m] * b[m]).sum::<f64>();
+            let jtj = DMat3::from_cols_array_2d(&std::array::from_fn(|a| {
+                std::array::from_fn(|b| dot(&jacobian[a], &jacobian[b]))
+            }));
+            let jtr = DVec3::from_array(std::array::from_fn(|a| dot(&jacobian[a], &r)));
+            let step = (jtj + DMat3::IDENTITY * 1e-6).inverse() * jtr;
+            h = self.clamp([h[0] - step.x, h[1] - step.y, h[2] - step.z]);
+            if step.length() < 1e-9 {
+                break;
+            }
+        }
+        h
+    }
 }
 
 /// Global body rotations of one pose.
@@ -228,18 +326,36 @@ pub fn retarget(
     let slopes = [stance_foot_slope(&frames, L::LAnkle, L::LToe), stance_foot_slope(&frames, L::RAnkle, L::RToe)];
     let map = humanoid.actions();
     let hip_height = -specs[1].offset[2];
-    let (mut clamped, mut qpos) = (0usize, Vec::with_capacity(frames.len()));
+    let (mut clamped, mut qpos) = (0usize, Vec::<Vec<f64>>::with_capacity(frames.len()));
+    let joints: Vec<Joint> = (1..NUM_BODIES)
+        .map(|body| {
+            let i = 3 * (body - 1);
+            let child = (0..NUM_BODIES).find(|&c| BODY_PARENTS[c] == Some(body));
+            let bone = child.map_or(DVec3::Z, |c| DVec3::from_array(specs[c].offset).normalize_or(DVec3::Z));
+            Joint {
+                lower: std::array::from_fn(|k| map.lower[i + k]),
+                upper: std::array::from_fn(|k| map.upper[i + k]),
+                bone,
+            }
+        })
+        .collect();
     for p in &frames {
         let rot = body_rotations(p, slopes);
         let mut hinges = map.q_bar;
-        for body in (1..NUM_BODIES).filter(|body| !UNMEASURED.contains(body)) {
+        // Each body turns from where its parent's angles put it (a parent out of range moves
+        // its children too), the rotations chained down the tree.
+        let mut placed = [DQuat::IDENTITY; NUM_BODIES];
+        placed[0] = rot[0];
+        for body in 1..NUM_BODIES {
             let parent = BODY_PARENTS[body].expect("non-root body");
-            let e = euler_xyz(rot[parent].conjugate() * rot[body]);
-            for k in 0..3 {
-                let i = 3 * (body - 1) + k;
-                hinges[i] = e[k].clamp(map.lower[i], map.upper[i]);
-                clamped += usize::from(hinges[i] != e[k]);
+            let i = 3 * (body - 1);
+            if !UNMEASURED.contains(&body) {
+                let previous = qpos.last().map(|q| std::array::from_fn(|k| q[7 + i + k]));
+                let (angles, outside) = joints[body - 1].nearest(placed[parent].conjugate() * rot[body], previous);
+                hinges[i..i + 3].copy_from_slice(&angles);
+                clamped += outside;
             }
+            placed[body] = placed[parent] * from_euler_xyz([hinges[i], hinges[i + 1], hinges[i + 2]]);
         }
         let root = 0.5 * (p[L::LHip] + p[L::RHip]) + rot[0] * DVec3::new(0.0, 0.0, hip_height);
         let q = rot[0];
@@ -296,4 +412,38 @@ fn smooth(xs: &[f64], window: usize) -> Vec<f64> {
             span.iter().sum::<f64>() / span.len() as f64
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The right shoulder's ranges (radians) and bone.
+    fn shoulder() -> Joint {
+        Joint { lower: [-2.094, -1.571, -1.571], upper: [2.094, 1.571, 2.094], bone: DVec3::NEG_Y }
+    }
+
+    #[test]
+    fn angles_in_range_are_kept_and_a_turn_past_the_range_moves_them_smoothly() {
+        let joint = shoulder();
+        let q = from_euler_xyz([0.5, -0.3, 1.0]);
+        let (h, outside) = joint.nearest(q, None);
+        assert_eq!(outside, 0);
+        assert!((h[0] - 0.5).abs() < 1e-12 && (h[1] + 0.3).abs() < 1e-12 && (h[2] - 1.0).abs() < 1e-12);
+        // An arm raised past the range, shaking: the x angle goes from 100 degrees to 185 and
+        // back, 3 degrees of jitter on top, with some swing and twist. The Euler angle wraps at
+        // 180, past the range's 120, where the other end of the range is about as near.
+        let mut previous: Option<[f64; 3]> = None;
+        for k in 0..=120 {
+            let a = (100.0 + 85.0 * (PI * k as f64 / 120.0).sin() + 3.0 * (k as f64).sin()).to_radians();
+            let q = from_euler_xyz([a, -0.9, 2.3]);
+            let (h, _) = joint.nearest(q, previous);
+            assert!((0..3).all(|i| (joint.lower[i]..=joint.upper[i]).contains(&h[i])), "frame {k}: {h:?}");
+            if let Some(p) = previous {
+                let step = (0..3).map(|i| (h[i] - p[i]).abs()).fold(0.0, f64::max);
+                assert!(step < 0.3, "frame {k}: the angles jump {step:.2} rad, {p:?} -> {h:?}");
+            }
+            previous = Some(h);
+        }
+    }
 }

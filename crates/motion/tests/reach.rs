@@ -5,6 +5,7 @@
 
 mod common;
 
+use flowmimic_motion::clip::BODY_SPEED_JUMP;
 use flowmimic_motion::generator::{self, Schedule};
 use flowmimic_motion::reach::{self, Reaching};
 use flowmimic_motion::{Clip, GaitParams, RetargetReport, WanderParams, generate, wander};
@@ -110,6 +111,8 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
         assert!(mean < 0.05, "clip {n}: feet on the ground move at {mean:.3} m/s on average");
         let q = clip.quality(&h);
         assert!(q.penetration_max < 0.01 && q.airborne == 0.0, "clip {n}: {q:?}");
+        // No body jumps between frames: a hand out and back moves as fast as a person's.
+        assert!(q.body_speed_max < BODY_SPEED_JUMP, "clip {n}: a body moves at {:.1} m/s", q.body_speed_max);
     }
     assert!(reaches >= 40, "only {reaches} reaches");
     // Targets span the range, from near the floor to above the head.
