@@ -78,6 +78,11 @@ enum Command {
         /// 10 s straight walk. Takes several files (`--clip runs/corpus/*.clip.safetensors`).
         #[arg(long, num_args = 1..)]
         clip: Vec<PathBuf>,
+        /// Run one stage alone, its inputs already done (`python -m flowmimic.cluster` runs the
+        /// stages as tasks this way): clips, expert:CLIP, rollouts:CLIP (into rollouts/CLIP),
+        /// collect (joins the parts when every clip's are done), train:fm, train:ddpm, evaluate.
+        #[arg(long, value_name = "STAGE")]
+        only: Option<pipeline::Only>,
     },
     /// The simulated humanoid: inspect the model, export its MJCF, watch it stand.
     #[command(subcommand)]
@@ -284,7 +289,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Demo { model, out, drive } => {
             demo::run(&paths::model_or_default(model), &out, &drive, &Humanoid::new(config.sim)?)?
         }
-        Command::Pipeline { out, clip } => pipeline::run(&config, &cli.settings.preset, &out, &clip)?,
+        Command::Pipeline { out, clip, only } => pipeline::run(&config, &cli.settings.preset, &out, &clip, only)?,
         Command::Render { file, out, env, width, height, fps } => {
             viz::render(&Humanoid::new(config.sim)?, &file, out, env, (width, height), fps)?
         }

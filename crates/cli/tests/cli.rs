@@ -399,6 +399,22 @@ fn the_pipeline_runs_every_stage_then_skips_what_is_done() {
     assert!(dir.join("p/model/fm/inverse.safetensors").exists(), "no inverse dynamics beside FM");
     let again = ok(&dir, &["pipeline", "-o", "p"]);
     assert_eq!(again.matches("(skipped)").count(), 6, "{again}");
+    // Stage by stage (as the cluster runs them), the same expert and the same dataset: the
+    // rollouts of each clip on their own, then joined.
+    let (success, text) = flowmimic(&dir, &["pipeline", "-o", "q", "--only", "train:fm"]);
+    assert!(!success && text.contains("q/data is not done yet: run the collect stage first"), "{text}");
+    for stage in ["clips", "expert:walk_straight", "rollouts:walk_straight", "collect"] {
+        ok(&dir, &["pipeline", "-o", "q", "--only", stage]);
+    }
+    let joined = ok(&dir, &["pipeline", "-o", "q", "--only", "collect"]);
+    assert!(joined.contains("(skipped)"), "{joined}");
+    for file in ["experts/walk_straight/policy.safetensors", "data/walk_straight.rollouts.safetensors"] {
+        let (p, q) = (dir.join("p").join(file), dir.join("q").join(file));
+        assert!(common::tensor_bytes(&p) == common::tensor_bytes(&q), "{file} differs stage by stage");
+    }
+    let stamp = |run: &str| std::fs::read_to_string(dir.join(run).join("data/stage.json")).unwrap();
+    let key = |text: String| text.lines().find(|l| l.contains("\"key\"")).unwrap().to_string();
+    assert_eq!(key(stamp("p")), key(stamp("q")));
     // Other model settings leave the stages before the model alone, and refuse to overwrite
     // the trained model.
     std::fs::write(dir.join("wider.toml"), "[model]\nd_model = 24\n").unwrap();
