@@ -37,6 +37,21 @@ fn humanoid() -> PyResult<Arc<Humanoid>> {
     Ok(Arc::clone(HUMANOID.get_or_init(|| h)))
 }
 
+/// `values` as a NumPy array of `rows` rows of `width`, owning the vector (no copy).
+fn matrix<T: numpy::Element>(
+    py: Python<'_>,
+    values: Vec<T>,
+    rows: usize,
+    width: usize,
+) -> PyResult<Bound<'_, PyArray2<T>>> {
+    Ok(numpy::ndarray::Array2::from_shape_vec((rows, width), values).map_err(bad)?.into_pyarray(py))
+}
+
+/// World positions of the 24 bodies of `rows` poses, `[rows, 24, 3]`, owning the vector.
+fn body_array(py: Python<'_>, flat: Vec<f64>, rows: usize) -> PyResult<Bound<'_, PyArray3<f64>>> {
+    Ok(numpy::ndarray::Array3::from_shape_vec((rows, NUM_BODIES, 3), flat).map_err(bad)?.into_pyarray(py))
+}
+
 /// A 2-d array's rows as one slice of its own memory (no copy), checked to have `width`
 /// columns and to be C-contiguous.
 fn rows<'a>(a: &'a PyReadonlyArray2<f32>, width: usize, what: &str) -> PyResult<(&'a [f32], usize)> {
@@ -157,7 +172,7 @@ impl Model {
             })
             .map_err(bad)?;
         let width = self.future_len();
-        numpy::ndarray::Array2::from_shape_vec((n, width), futures).map(|a| a.into_pyarray(py)).map_err(bad)
+        matrix(py, futures, n, width)
     }
 
     fn __repr__(&self) -> String {
@@ -314,10 +329,9 @@ impl Controller {
             }
         });
         let fell: Vec<bool> = (0..envs).map(|e| outcome.fell.contains(&e)).collect();
-        let grid = |v: Vec<f32>, w: usize| numpy::ndarray::Array2::from_shape_vec((envs, w), v).map_err(bad);
         Ok((
-            grid(states, STATE_DIM)?.into_pyarray(py),
-            grid(actions, NUM_DOFS)?.into_pyarray(py),
+            matrix(py, states, envs, STATE_DIM)?,
+            matrix(py, actions, envs, NUM_DOFS)?,
             fell.into_pyarray(py),
             alive.into_pyarray(py),
             touching.into_pyarray(py),
@@ -330,7 +344,7 @@ impl Controller {
         let flat: Vec<f64> = self.cell.with_dependent(|_, c| {
             (0..envs).flat_map(|e| c.env(e).bodies().pos.into_iter().flat_map(|p| p.to_array())).collect()
         });
-        numpy::ndarray::Array3::from_shape_vec((envs, NUM_BODIES, 3), flat).map(|a| a.into_pyarray(py)).map_err(bad)
+        body_array(py, flat, envs)
     }
 }
 
@@ -390,7 +404,7 @@ impl Clip {
     fn qpos<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
         let flat: Vec<f64> = self.inner.qpos.iter().flatten().copied().collect();
         let width = self.inner.qpos.first().map_or(0, Vec::len);
-        numpy::ndarray::Array2::from_shape_vec((self.inner.len(), width), flat).map(|a| a.into_pyarray(py)).map_err(bad)
+        matrix(py, flat, self.inner.len(), width)
     }
 
     /// World positions of the 24 bodies per frame, `[T, 24, 3]`.
@@ -398,18 +412,14 @@ impl Clip {
     fn body_positions<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray3<f64>>> {
         let flat: Vec<f64> =
             self.inner.bodies.iter().flat_map(|b| b.pos.into_iter().flat_map(|p| p.to_array())).collect();
-        numpy::ndarray::Array3::from_shape_vec((self.inner.len(), NUM_BODIES, 3), flat)
-            .map(|a| a.into_pyarray(py))
-            .map_err(bad)
+        body_array(py, flat, self.inner.len())
     }
 
     /// The model's 165-d state per frame, `[T, 165]`.
     #[getter]
     fn states<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f32>>> {
         let flat: Vec<f32> = self.inner.bodies.iter().flat_map(|b| b.state()).collect();
-        numpy::ndarray::Array2::from_shape_vec((self.inner.len(), STATE_DIM), flat)
-            .map(|a| a.into_pyarray(py))
-            .map_err(bad)
+        matrix(py, flat, self.inner.len(), STATE_DIM)
     }
 
     fn __repr__(&self) -> String {
@@ -545,8 +555,12 @@ impl Tracking {
             terminated.push(matches!(ending, Ending::Failed | Ending::Diverged));
             truncated.push(ending == Ending::ClipEnd);
         }
-        let obs = numpy::ndarray::Array2::from_shape_vec((envs, OBS_DIM), obs).map_err(bad)?;
-        Ok((obs.into_pyarray(py), reward.into_pyarray(py), terminated.into_pyarray(py), truncated.into_pyarray(py)))
+        Ok((
+            matrix(py, obs, envs, OBS_DIM)?,
+            reward.into_pyarray(py),
+            terminated.into_pyarray(py),
+            truncated.into_pyarray(py),
+        ))
     }
 }
 
@@ -579,7 +593,7 @@ impl Expert {
     ) -> PyResult<Bound<'py, PyArray2<f32>>> {
         let (obs, n) = rows(&observations, OBS_DIM, "observations")?;
         let actions = py.detach(|| self.policy.act(obs, n));
-        numpy::ndarray::Array2::from_shape_vec((n, NUM_DOFS), actions).map(|a| a.into_pyarray(py)).map_err(bad)
+        matrix(py, actions, n, NUM_DOFS)
     }
 }
 

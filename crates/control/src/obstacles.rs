@@ -6,27 +6,16 @@
 use crate::ControlError;
 use crate::costs::Cost;
 use crate::layout::Layout;
-use flowmimic_geom::{CharFrame, DVec3, wrap_angle};
+use flowmimic_geom::{CharFrame, DVec3};
 use flowmimic_sim::skeleton::body;
-use flowmimic_sim::{CONTROL_HZ, Footprint, Obstacle};
+use flowmimic_sim::{CONTROL_HZ, Obstacle};
 
 /// Seen from the character frame `frame` at `time`: each obstacle where it is then, its
 /// velocity and footprint turned into the frame, so that `position(t)` is where it will be `t`
 /// seconds later.
 pub fn in_frame(obstacles: &[Obstacle], frame: &CharFrame, time: f64) -> Vec<Obstacle> {
-    obstacles
-        .iter()
-        .map(|o| {
-            let [x, y] = o.position(time);
-            let at = frame.point(DVec3::new(x, y, frame.origin.z));
-            let v = frame.vector(DVec3::new(o.velocity[0], o.velocity[1], 0.0));
-            let footprint = match o.footprint {
-                Footprint::Box { half, yaw } => Footprint::Box { half, yaw: wrap_angle(yaw - frame.yaw) },
-                cylinder => cylinder,
-            };
-            Obstacle { footprint, at: [at.x, at.y], velocity: [v.x, v.y], height: o.height }
-        })
-        .collect()
+    let here = CharFrame::new(DVec3::ZERO, 0.0);
+    obstacles.iter().map(|o| Obstacle { at: o.position(time), ..*o }.carried(frame, &here)).collect()
 }
 
 /// Keep the predicted body clear of every obstacle: `1/2 sum_k sum_b sum_o max(0, m_b -

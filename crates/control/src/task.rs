@@ -6,8 +6,8 @@ use crate::costs::{Heading, Joystick, Pursuit, Reach, Sum};
 use crate::obstacles::{Avoid, in_frame, world_detour};
 use crate::{ControlError, Layout};
 use flowmimic_geom::{CharFrame, DVec3, wrap_angle};
+use flowmimic_sim::Obstacle;
 use flowmimic_sim::skeleton::body;
-use flowmimic_sim::{Footprint, Obstacle};
 use serde::{Deserialize, Serialize};
 
 /// One piece of a joystick schedule: hold (vx forward, vy left in the character frame, m/s;
@@ -135,24 +135,13 @@ impl Task {
             let w = to.point_to_world(from.point(DVec3::new(p[0], p[1], from.origin.z)));
             [w.x, w.y]
         };
-        let turn = |v: [f64; 2]| {
-            let w = to.vector_to_world(from.vector(DVec3::new(v[0], v[1], 0.0)));
-            [w.x, w.y]
-        };
-        let obstacles = self.obstacles.iter().map(|o| {
-            let footprint = match o.footprint {
-                Footprint::Box { half, yaw } => Footprint::Box { half, yaw: wrap_angle(yaw + to.yaw - from.yaw) },
-                cylinder => cylinder,
-            };
-            Obstacle { footprint, at: carry(o.at), velocity: turn(o.velocity), height: o.height }
-        });
         Task {
             reach: self.reach.map(|(hand, t)| {
                 let [x, y] = carry([t[0], t[1]]);
                 (hand, [x, y, t[2]])
             }),
             waypoint: self.waypoint.map(carry),
-            obstacles: obstacles.collect(),
+            obstacles: self.obstacles.iter().map(|o| o.carried(from, to)).collect(),
             ..self.clone()
         }
     }

@@ -2,6 +2,7 @@
 //! straight line at a constant velocity. The simulator makes them MuJoCo geoms on mocap bodies
 //! (so a collision is a real contact); guidance reads the same description as a footprint.
 
+use flowmimic_geom::{CharFrame, DVec3, wrap_angle};
 use serde::{Deserialize, Serialize};
 
 /// An obstacle's footprint on the ground.
@@ -82,6 +83,18 @@ impl Obstacle {
             Some(v) => Err(format!("obstacle velocity {v} m/s (finite, within 10 m/s)")),
             None => Ok(()),
         }
+    }
+
+    /// The obstacle carried rigidly from the frame `from` to the frame `to`: where it stands,
+    /// how it moves and how its footprint is turned stay the same relative to the frame.
+    pub fn carried(&self, from: &CharFrame, to: &CharFrame) -> Obstacle {
+        let at = to.point_to_world(from.point(DVec3::new(self.at[0], self.at[1], from.origin.z)));
+        let v = to.vector_to_world(from.vector(DVec3::new(self.velocity[0], self.velocity[1], 0.0)));
+        let footprint = match self.footprint {
+            Footprint::Box { half, yaw } => Footprint::Box { half, yaw: wrap_angle(yaw + to.yaw - from.yaw) },
+            cylinder => cylinder,
+        };
+        Obstacle { footprint, at: [at.x, at.y], velocity: [v.x, v.y], height: self.height }
     }
 
     /// Where its centre is at `time` (s).

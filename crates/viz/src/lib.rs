@@ -23,10 +23,10 @@ pub enum VizError {
     Output { path: PathBuf, message: String },
 }
 
-/// A sequence of poses at 30 Hz with their markers.
 /// Colour of obstacles in pictures: see-through, so that the humanoid shows behind them.
 const OBSTACLE_RGBA: [f32; 4] = [0.45, 0.5, 0.6, 0.55];
 
+/// A sequence of poses at 30 Hz with their markers.
 pub struct Frames {
     pub name: String,
     pub qpos: Vec<Vec<f64>>,
