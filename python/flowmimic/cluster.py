@@ -26,13 +26,13 @@ from typing import List, Optional, Sequence
 
 
 def find_binary(explicit: Optional[str] = None) -> str:
-    """The ``flowmimic`` binary: ``explicit``, else ``$FLOWMIMIC_BIN``, else the ``PATH``, else a
-    build in the repository this package was installed from."""
+    """The ``flowmimic`` binary, as an absolute path (tasks run in Ray's working directories):
+    ``explicit``, else ``$FLOWMIMIC_BIN``, else the ``PATH``."""
     for candidate in (explicit, os.environ.get("FLOWMIMIC_BIN"), shutil.which("flowmimic")):
         if candidate:
-            if not os.access(candidate, os.X_OK):
+            if not (os.path.isfile(candidate) and os.access(candidate, os.X_OK)):
                 raise SystemExit(f"flowmimic.cluster: {candidate} is not an executable flowmimic binary")
-            return str(candidate)
+            return os.path.abspath(candidate)
     raise SystemExit(
         "flowmimic.cluster: no flowmimic binary: build it (cargo build --release) and pass --binary "
         "target/release/flowmimic, set FLOWMIMIC_BIN, or put it on the PATH of every node"
@@ -51,12 +51,20 @@ def _stage(binary: str, settings: Sequence[str], out: str, stage: str, cpus: int
         command += ["--clip", *clips]
     env = dict(os.environ, RAYON_NUM_THREADS=str(cpus))
     started = time.time()
-    with open(log, "w") as f:
+    # Each run's output after the earlier runs', so that a rerun that skips keeps the log of
+    # the run that did the work.
+    with open(log, "a") as f:
+        f.write(f"--- {time.strftime('%Y-%m-%d %H:%M:%S')}: {' '.join(command)}\n")
+        f.flush()
+        begin = f.tell()
         done = subprocess.run(command, stdout=f, stderr=subprocess.STDOUT, env=env)
+    with open(log, errors="replace") as f:
+        f.seek(begin)
+        output = f.read()
     if done.returncode != 0:
-        tail = "".join(log.read_text(errors="replace").splitlines(keepends=True)[-20:])
+        tail = "".join(output.splitlines(keepends=True)[-20:])
         raise RuntimeError(f"stage {stage} failed (exit {done.returncode}); the end of {log}:\n{tail}")
-    return time.time() - started
+    return -1.0 if "(skipped)" in output else time.time() - started
 
 
 def _clip_names(out: str) -> List[str]:
@@ -75,7 +83,8 @@ def pipeline(
     workers: Optional[int] = None,
     retries: int = 2,
 ) -> dict:
-    """Runs the pipeline's stages as Ray tasks and returns each stage's seconds, by stage."""
+    """Runs the pipeline's stages as Ray tasks and returns each stage's seconds, by stage (-1 for
+    a stage skipped: done before for the same settings and inputs)."""
     import ray
 
     if address == "local":
@@ -96,7 +105,11 @@ def pipeline(
             ready, _ = ray.wait(list(pending.values()), num_returns=1)
             name = next(n for n, r in pending.items() if r == ready[0])
             seconds[name] = ray.get(pending.pop(name))
-            print(f"done {name} in {seconds[name]:.1f} s ({len(refs) - len(pending)}/{len(refs)})", flush=True)
+            count = f"({len(refs) - len(pending)}/{len(refs)})"
+            if seconds[name] < 0:
+                print(f"skipped {name}: done before for the same settings {count}", flush=True)
+            else:
+                print(f"done {name} in {seconds[name]:.1f} s {count}", flush=True)
 
     try:
         cluster = ray.cluster_resources()
@@ -123,6 +136,7 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     commands = parser.add_subparsers(dest="command", required=True)
     p = commands.add_parser(
         "pipeline",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         help="flowmimic pipeline's stages as Ray tasks",
         description="Every stage of `flowmimic pipeline` as a Ray task: the experts and rollouts of the "
         "clips side by side, then the dataset, both models and the evaluation. Stages done for the same "
@@ -130,13 +144,13 @@ def main(argv: Optional[Sequence[str]] = None) -> None:
     )
     p.add_argument("--address", required=True, help="the Ray cluster (host:6379 or ray://host:10001), or 'local'")
     p.add_argument("-o", "--out", default="runs/pipeline", help="output directory, seen by every node")
-    p.add_argument("--preset", help="the binary's preset: tiny, cpu (its default) or paper")
+    p.add_argument("--preset", help="the binary's preset: tiny (seconds), cpu (its default: hours) or paper")
     p.add_argument("--config", action="append", default=[], help="a TOML layer for the binary (repeatable)")
     p.add_argument("--clip", nargs="+", default=[], help="clips to train on (default: the straight walk)")
-    p.add_argument("--binary", help="the flowmimic binary (default: $FLOWMIMIC_BIN, else the PATH)")
+    p.add_argument("--binary", help="the flowmimic binary (none: $FLOWMIMIC_BIN, else the PATH)")
     p.add_argument("--cpus-per-task", type=int, default=1, help="CPUs (and threads) of each expert and rollouts task")
     p.add_argument("--train-cpus", type=int, default=1, help="CPUs of each model's training task")
-    p.add_argument("--workers", type=int, help="with --address local: the local cluster's CPUs (default: all)")
+    p.add_argument("--workers", type=int, help="with --address local: the local cluster's CPUs (none: all)")
     p.add_argument("--retries", type=int, default=2, help="times Ray retries a task whose worker died")
     args = parser.parse_args(argv)
     binary = find_binary(args.binary)

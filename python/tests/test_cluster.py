@@ -62,13 +62,17 @@ def test_the_pipeline_on_a_local_ray_cluster_matches_one_machine(tmp_path, capsy
         for d in (on_ray, alone)
     ]
     assert inspect[0] == inspect[1] and "walk_straight" in inspect[0]
-    # Run again: every stage is done, each task skips it.
+    # Run again: every stage is done, each task skips it and says so; the logs keep both runs.
     cluster.main(["pipeline", "--address", "local", "--workers", "2", "--preset", "tiny", "-o", str(on_ray), "--binary", exe])
+    assert capsys.readouterr().out.count("skipped ") == 7
     logs = sorted((on_ray / "logs").glob("*.log"))
-    assert len(logs) == 7 and all("(skipped)" in log.read_text() for log in logs), [log.read_text() for log in logs]
+    assert len(logs) == 7 and all(log.read_text().count("--- ") == 2 for log in logs)
+    assert "steps" in (on_ray / "logs" / "expert-walk_straight.log").read_text(), "the training's log was lost"
 
 
 def test_a_stage_that_fails_names_itself_and_its_log(tmp_path):
+    with pytest.raises(SystemExit, match="is not an executable flowmimic binary"):
+        cluster.main(["pipeline", "--address", "local", "-o", str(tmp_path), "--binary", str(tmp_path)])
     with pytest.raises(SystemExit) as stopped:
         cluster.main(
             ["pipeline", "--address", "local", "--workers", "1", "--preset", "tiny", "-o", str(tmp_path),

@@ -54,9 +54,18 @@ fn stage(name: &str, dir: &Path, key: String, work: impl FnOnce() -> Result<()>)
     Ok(key)
 }
 
-/// The clips the pipeline trains on: the given files, or the generated 10 s straight walk.
+/// The clips the pipeline trains on: the given files, or the generated 10 s straight walk. They
+/// replace the clips an earlier run left in `dir` (whose experts stay where they are, unused).
 fn clips(humanoid: &Arc<Humanoid>, files: &[PathBuf], dir: &Path) -> Result<Vec<PathBuf>> {
-    crate::track::load_clips(humanoid, files)?
+    let clips = crate::track::load_clips(humanoid, files)?;
+    if let Ok(entries) = std::fs::read_dir(dir) {
+        for old in entries.filter_map(|e| e.ok().map(|e| e.path())) {
+            if old.to_string_lossy().ends_with(".clip.safetensors") {
+                std::fs::remove_file(&old).with_context(|| format!("removing {}", old.display()))?;
+            }
+        }
+    }
+    clips
         .iter()
         .map(|clip| {
             let path = dir.join(format!("{}.clip.safetensors", clip.name));
@@ -223,7 +232,16 @@ impl Stages<'_> {
         let config = self.config;
         let mut parts = vec![data_key.to_string(), json(&config.model), json(&config.train), objective.into()];
         parts.extend(fm.then(|| json(&config.inverse)));
-        stage(&format!("train {objective}"), &dir, key(&parts), || {
+        let key = key(&parts);
+        // A finished model made from other data or settings is the user's: never overwritten.
+        if stamp_of(&dir).is_some_and(|k| k != key) {
+            anyhow::bail!(
+                "pipeline stage 'train {objective}': {} holds a model trained on other data or settings; \
+                 move it away, or give the pipeline another output directory (-o)",
+                dir.display()
+            );
+        }
+        stage(&format!("train {objective}"), &dir, key, || {
             let resume = dir.join(flowmimic_model::train::CHECKPOINT_FILE).exists();
             crate::model::train(&data, objective, &dir, None, resume, config.model, config.train.clone())?;
             if fm {

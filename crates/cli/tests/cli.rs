@@ -415,12 +415,21 @@ fn the_pipeline_runs_every_stage_then_skips_what_is_done() {
     let stamp = |run: &str| std::fs::read_to_string(dir.join(run).join("data/stage.json")).unwrap();
     let key = |text: String| text.lines().find(|l| l.contains("\"key\"")).unwrap().to_string();
     assert_eq!(key(stamp("p")), key(stamp("q")));
+    // Other clips into the same directory replace the clips it had.
+    ok(&dir, &["motion", "generate", "--duration", "2", "--name", "short", "-o", "gen"]);
+    ok(&dir, &["pipeline", "-o", "q", "--only", "clips", "--clip", "gen/short.clip.safetensors"]);
+    let clips: Vec<_> = std::fs::read_dir(dir.join("q/clips")).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert!(clips.contains(&"short.clip.safetensors".into()) && clips.len() == 2, "{clips:?}"); // and stage.json
     // Other model settings leave the stages before the model alone, and refuse to overwrite
     // the trained model.
     std::fs::write(dir.join("wider.toml"), "[model]\nd_model = 24\n").unwrap();
     let (success, text) = flowmimic(&dir, &["--config", "wider.toml", "pipeline", "-o", "p"]);
     assert!(!success && text.matches("(skipped)").count() == 3, "{text}");
     assert!(text.contains("'train fm'") && text.contains("another output directory"), "{text}");
+    // So do other expert settings, whose dataset the model was not trained on.
+    std::fs::write(dir.join("longer.toml"), "[track]\niterations = 3\n").unwrap();
+    let (success, text) = flowmimic(&dir, &["--config", "longer.toml", "pipeline", "-o", "p"]);
+    assert!(!success && text.contains("holds a model trained on other data or settings"), "{text}");
     // A damaged artifact stops the pipeline with the stage and the file.
     std::fs::write(dir.join("p/experts/walk_straight/policy.safetensors"), b"damaged").unwrap();
     std::fs::remove_file(dir.join("p/experts/walk_straight/stage.json")).unwrap();
