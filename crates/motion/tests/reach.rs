@@ -1,7 +1,8 @@
 //! Reaching in generated walks, checked on many random clips: during each hold the reference
 //! hand is on its target, the walk slows, the torso leans and the knees bend for low targets,
 //! the arm never passes through the torso (the simulator's own collision detection on the
-//! reference poses), and the walking invariants still hold.
+//! reference poses), the weight stays over the feet when standing, and the walking invariants
+//! still hold.
 
 mod common;
 
@@ -57,7 +58,7 @@ fn reaching_clips(h: &Arc<Humanoid>) -> Vec<(Clip, Schedule, RetargetReport)> {
 fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
     let h = Humanoid::new(SimConfig::default()).unwrap();
     let mut env = h.env();
-    let (mut reaches, mut lowest, mut highest) = (0, f64::MAX, 0.0_f64);
+    let (mut reaches, mut lowest, mut highest, mut worst_balance) = (0, f64::MAX, 0.0_f64, 0.0_f64);
     for (n, (clip, schedule, report)) in reaching_clips(&h).iter().enumerate() {
         let targets = generator::reach_targets(schedule);
         assert!(!targets.is_empty(), "clip {n} has no reach");
@@ -99,6 +100,20 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
             let turn = common::upper_body_turn(k);
             assert!(turn < 30.0, "{what}: the upper body faces {turn:.0} deg from the pelvis");
             env.reset(&clip.qpos[t], &clip.qvel[t]).unwrap();
+            // Reaching while standing or creeping, the weight stays over the feet (within 0.1 m
+            // of the line between their middles; a foot reaches 0.11 m to either side of its
+            // middle): a bend that reaches far pushes the hips back, and no further.
+            let reaching = schedule.reaches.iter().any(|r| (r.start..=r.end()).contains(&(t as f64 / CONTROL_HZ)));
+            if reaching && k.lin_vel[body::PELVIS].truncate().length() < 0.15 {
+                let foot = |ankle: usize, toe: usize| 0.5 * (k.pos[ankle] + k.pos[toe]).truncate();
+                let (l, r) = (foot(body::L_ANKLE, body::L_TOE), foot(body::R_ANKLE, body::R_TOE));
+                let com = env.centre_of_mass().truncate();
+                // Distance to the line between the feet's middles (the support, less the feet).
+                let along = ((com - l).dot(r - l) / (r - l).length_squared()).clamp(0.0, 1.0);
+                let off = com.distance(l + along * (r - l));
+                worst_balance = worst_balance.max(off);
+                assert!(off < 0.1, "{what}: the centre of mass is {off:.2} m from between the feet");
+            }
             for (a, b) in env.self_contacts() {
                 assert!(!common::legs_touch((a, b)), "{what}: legs {a} and {b} touch");
                 let arm_in_torso =
@@ -115,6 +130,7 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
         assert!(q.body_speed_max < BODY_SPEED_JUMP, "clip {n}: a body moves at {:.1} m/s", q.body_speed_max);
     }
     assert!(reaches >= 40, "only {reaches} reaches");
+    eprintln!("reaching slowly, the centre of mass was at most {worst_balance:.3} m from between the feet");
     // Targets span the range, from near the floor to above the head.
     assert!(lowest < 0.55 && highest > 1.55, "targets {lowest:.2}-{highest:.2} m high");
 }

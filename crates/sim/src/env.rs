@@ -207,6 +207,11 @@ impl Env {
         k
     }
 
+    /// The whole humanoid's centre of mass, world frame, m.
+    pub fn centre_of_mass(&self) -> DVec3 {
+        DVec3::from_array(self.data.subtree_com()[body::PELVIS + 1])
+    }
+
     /// The 165-d state in the current character frame (see [`crate::state`]).
     pub fn state(&self) -> [f32; STATE_DIM] {
         self.bodies().state()
