@@ -16,13 +16,14 @@ every node needs the ``flowmimic`` binary (``--binary``, ``$FLOWMIMIC_BIN`` or t
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import pathlib
 import shutil
 import subprocess
 import sys
 import time
-from typing import List, Optional, Sequence
+from typing import Optional, Sequence
 
 
 def find_binary(explicit: Optional[str] = None) -> str:
@@ -67,9 +68,13 @@ def _stage(binary: str, settings: Sequence[str], out: str, stage: str, cpus: int
     return -1.0 if "(skipped)" in output else time.time() - started
 
 
-def _clip_names(out: str) -> List[str]:
-    clips = pathlib.Path(out) / "clips"
-    return sorted(p.name[: -len(".clip.safetensors")] for p in clips.glob("*.clip.safetensors"))
+def _plan(binary: str, settings: Sequence[str], out: str) -> dict:
+    """The stages after the clips, as the binary plans them for these settings (``flowmimic
+    pipeline --plan``): ``experts``, ``rollouts`` (each clip with its expert) and ``models``."""
+    done = subprocess.run([binary, *settings, "pipeline", "-o", out, "--plan"], capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"flowmimic pipeline --plan failed: {done.stderr.strip()}")
+    return json.loads(done.stdout)
 
 
 def pipeline(
@@ -116,14 +121,15 @@ def pipeline(
         print(f"ray: {cluster.get('CPU', 0):.0f} CPUs, {cluster.get('GPU', 0):.0f} GPUs; stages in {out}", flush=True)
         started = time.time()
         wait({"clips": run("clips", 1)})
-        names = _clip_names(out)
-        # Each clip's rollouts start as soon as its expert is done.
-        experts = {n: run(f"expert:{n}", cpus_per_task) for n in names}
-        rollouts = {n: run(f"rollouts:{n}", cpus_per_task, experts[n]) for n in names}
-        wait({**{f"expert:{n}": r for n, r in experts.items()}, **{f"rollouts:{n}": r for n, r in rollouts.items()}})
+        plan = _plan(binary, settings, out)
+        # Each clip's rollouts start as soon as its expert is done (one expert per clip, or one
+        # policy over them all: `[pipeline] experts`).
+        experts = {e: run(f"expert:{e}", cpus_per_task) for e in plan["experts"]}
+        rollouts = {c: run(f"rollouts:{c}", cpus_per_task, experts[e]) for c, e in plan["rollouts"]}
+        wait({**{f"expert:{e}": r for e, r in experts.items()}, **{f"rollouts:{c}": r for c, r in rollouts.items()}})
         wait({"collect": run("collect", 1)})
         # The trainer runs on CPUs only (the binary has no GPU backend): it asks for CPUs.
-        wait({f"train:{o}": run(f"train:{o}", train_cpus) for o in ("fm", "ddpm")})
+        wait({f"train:{o}": run(f"train:{o}", train_cpus) for o in plan["models"]})
         wait({"evaluate": run("evaluate", train_cpus)})
         print(f"pipeline finished on ray in {time.time() - started:.1f} s: report {out}/eval/report.md", flush=True)
     finally:

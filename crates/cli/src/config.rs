@@ -32,6 +32,9 @@ pub struct Config {
     /// Inverse dynamics beside the FM model (`flowmimic inverse`).
     #[serde(default)]
     pub inverse: InverseConfig,
+    /// What `flowmimic pipeline` makes (`[pipeline]`).
+    #[serde(default)]
+    pub pipeline: crate::pipeline::PipelineConfig,
 }
 
 /// The built-in presets, embedded from `configs/`.
@@ -89,7 +92,8 @@ impl Config {
         self.collect.validate()?;
         self.model.validate()?;
         self.train.validate()?;
-        self.inverse.validate()
+        self.inverse.validate()?;
+        self.pipeline.validate()
     }
 }
 
@@ -117,6 +121,7 @@ mod tests {
             ("[collect]\nnoise = [[-0.1, 4]]\n", "sigma"),
             ("[inverse]\nlr = -1.0\n", "inverse.lr"),
             ("[track]\nclip = -0.2\n", "positive"),
+            ("[pipeline]\nobjectives = [\"fm\", \"fm\"]\n", "pipeline.objectives"),
         ] {
             std::fs::write(&path, bad).unwrap();
             let err = format!("{:#}", Config::load("cpu", &[&path]).unwrap_err());

@@ -83,6 +83,10 @@ enum Command {
         /// collect (joins the parts when every clip's are done), train:fm, train:ddpm, evaluate.
         #[arg(long, value_name = "STAGE")]
         only: Option<pipeline::Only>,
+        /// Print the stages after the clips (the experts, each clip with its expert, the
+        /// models) as JSON, and run nothing: what the cluster driver schedules.
+        #[arg(long, conflicts_with = "only")]
+        plan: bool,
     },
     /// The simulated humanoid: inspect the model, export its MJCF, watch it stand.
     #[command(subcommand)]
@@ -289,7 +293,9 @@ fn run(cli: Cli) -> Result<()> {
         Command::Demo { model, out, drive } => {
             demo::run(&paths::model_or_default(model), &out, &drive, &Humanoid::new(config.sim)?)?
         }
-        Command::Pipeline { out, clip, only } => pipeline::run(&config, &cli.settings.preset, &out, &clip, only)?,
+        Command::Pipeline { out, clip, only, plan } => {
+            pipeline::run(&config, &cli.settings.preset, &out, &clip, only, plan)?
+        }
         Command::Render { file, out, env, width, height, fps } => {
             viz::render(&Humanoid::new(config.sim)?, &file, out, env, (width, height), fps)?
         }

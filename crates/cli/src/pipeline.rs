@@ -10,8 +10,9 @@ use crate::eval::{self, Common, EvalCommand, Sweep};
 use crate::track::Start;
 use anyhow::{Context, Result};
 use flowmimic_data::Dataset;
-use flowmimic_motion::Clip;
+use flowmimic_motion::{Clip, CorpusParams};
 use flowmimic_sim::Humanoid;
+use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -54,10 +55,62 @@ fn stage(name: &str, dir: &Path, key: String, work: impl FnOnce() -> Result<()>)
     Ok(key)
 }
 
-/// The clips the pipeline trains on: the given files, or the generated 10 s straight walk. They
-/// replace the clips an earlier run left in `dir` (whose experts stay where they are, unused).
-fn clips(humanoid: &Arc<Humanoid>, files: &[PathBuf], dir: &Path) -> Result<Vec<PathBuf>> {
-    let clips = crate::track::load_clips(humanoid, files)?;
+/// What `flowmimic pipeline` makes from what (`[pipeline]`): the clips when no `--clip` is
+/// given, whether each clip gets its own expert or one policy tracks them all, and the models.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PipelineConfig {
+    /// `walk`: the generated 10 s straight walk; `walking-corpus`: `flowmimic motion corpus
+    /// --walking-only` (4 wandering walks of 40 s, the backward walk and the walking captures of
+    /// `../shared/data/mocap`).
+    pub clips: ClipSource,
+    /// `each`: one expert per clip; `one`: one policy over every clip (`experts/all`).
+    pub experts: Experts,
+    /// The models, in order: `fm` and `ddpm`, or either.
+    pub objectives: Vec<String>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ClipSource {
+    Walk,
+    WalkingCorpus,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Experts {
+    Each,
+    One,
+}
+
+impl Default for PipelineConfig {
+    fn default() -> Self {
+        Self { clips: ClipSource::Walk, experts: Experts::Each, objectives: OBJECTIVES.map(String::from).to_vec() }
+    }
+}
+
+impl PipelineConfig {
+    pub fn validate(&self) -> Result<(), String> {
+        let known = self.objectives.iter().all(|o| OBJECTIVES.contains(&o.as_str()));
+        let once = self.objectives.iter().enumerate().all(|(i, o)| !self.objectives[..i].contains(o));
+        if self.objectives.is_empty() || !known || !once {
+            return Err(format!("pipeline.objectives is {:?}: give fm, ddpm or both, once each", self.objectives));
+        }
+        Ok(())
+    }
+}
+
+/// The one policy's name when `[pipeline] experts = "one"`.
+const ALL: &str = "all";
+
+/// The clips the pipeline trains on: the given files, else those of `source`. They replace the
+/// clips an earlier run left in `dir` (whose experts stay where they are, unused).
+fn clips(humanoid: &Arc<Humanoid>, files: &[PathBuf], source: ClipSource, dir: &Path) -> Result<()> {
+    let clips = match source {
+        ClipSource::WalkingCorpus if files.is_empty() => None,
+        _ => Some(crate::track::load_clips(humanoid, files)?),
+    };
     if let Ok(entries) = std::fs::read_dir(dir) {
         for old in entries.filter_map(|e| e.ok().map(|e| e.path())) {
             if old.to_string_lossy().ends_with(".clip.safetensors") {
@@ -65,14 +118,15 @@ fn clips(humanoid: &Arc<Humanoid>, files: &[PathBuf], dir: &Path) -> Result<Vec<
             }
         }
     }
-    clips
-        .iter()
-        .map(|clip| {
-            let path = dir.join(format!("{}.clip.safetensors", clip.name));
-            clip.save(&path)?;
-            Ok(path)
-        })
-        .collect()
+    let Some(clips) = clips else {
+        let mocap = Some(crate::paths::resolve(Path::new("../shared/data/mocap")));
+        let params = CorpusParams { walks: 4, duration: 40.0, reaching: 0, transitions: 0, mocap, walking_only: true };
+        return crate::motion::corpus(humanoid, params, dir).map(drop);
+    };
+    for clip in &clips {
+        clip.save(&dir.join(format!("{}.clip.safetensors", clip.name)))?;
+    }
+    Ok(())
 }
 
 /// One stage of the pipeline, to run alone (`--only`): on a cluster each is a task, the
@@ -100,7 +154,7 @@ impl std::str::FromStr for Only {
             ("expert", Some(clip)) => Ok(Only::Expert(clip)),
             ("rollouts", Some(clip)) => Ok(Only::Rollouts(clip)),
             ("collect", None) => Ok(Only::Collect),
-            ("train", Some(o)) if OBJECTIVES.contains(&o.as_str()) => Ok(Only::Train(o)),
+            ("train", Some(o)) => Ok(Only::Train(o)),
             ("evaluate", None) => Ok(Only::Evaluate),
             _ => Err(format!(
                 "'{s}' is not a stage: clips, expert:CLIP, rollouts:CLIP, collect, train:fm, train:ddpm or evaluate"
@@ -109,7 +163,7 @@ impl std::str::FromStr for Only {
     }
 }
 
-/// The models the pipeline trains.
+/// The models the pipeline can train.
 const OBJECTIVES: [&str; 2] = ["fm", "ddpm"];
 
 /// The stages' directories under one output directory, and what every stage needs.
@@ -148,10 +202,26 @@ impl Stages<'_> {
 
     fn clips(&self, clip_files: &[PathBuf]) -> Result<String> {
         let files: Vec<String> = clip_files.iter().map(|f| f.display().to_string()).collect();
-        let dir = self.clips_dir();
-        stage("clips", &dir, key(&[json(&self.config.sim), files.join(",")]), || {
-            clips(&self.humanoid, clip_files, &dir).map(drop)
+        let (dir, source) = (self.clips_dir(), self.config.pipeline.clips);
+        stage("clips", &dir, key(&[json(&self.config.sim), files.join(","), json(&source)]), || {
+            clips(&self.humanoid, clip_files, source, &dir)
         })
+    }
+
+    /// The expert that tracks a clip: its own, or the one policy.
+    fn expert_of<'n>(&self, clip: &'n str) -> &'n str {
+        match self.config.pipeline.experts {
+            Experts::Each => clip,
+            Experts::One => ALL,
+        }
+    }
+
+    /// The experts to train, for these clips.
+    fn expert_names(&self, clips: &[String]) -> Vec<String> {
+        match self.config.pipeline.experts {
+            Experts::Each => clips.to_vec(),
+            Experts::One => vec![ALL.to_string()],
+        }
     }
 
     /// The names of the clips the clips stage wrote, in name order.
@@ -165,17 +235,28 @@ impl Stages<'_> {
         Ok(names)
     }
 
+    /// The expert `name`: a clip's own, or with one policy, `all` over every clip.
     fn expert(&self, clips_key: &str, name: &str) -> Result<String> {
-        let path = self.clips_dir().join(format!("{name}.clip.safetensors"));
-        if !path.exists() {
-            anyhow::bail!("{}: no such clip in the clips stage's output", path.display());
-        }
-        let clip = Clip::load(&self.humanoid, &path)?;
+        let clips = match self.config.pipeline.experts {
+            Experts::One if name == ALL => self.clip_names()?,
+            Experts::Each => vec![name.to_string()],
+            Experts::One => anyhow::bail!("[pipeline] experts = \"one\": the one expert is '{ALL}', not '{name}'"),
+        };
+        let clips = clips
+            .iter()
+            .map(|clip| {
+                let path = self.clips_dir().join(format!("{clip}.clip.safetensors"));
+                if !path.exists() {
+                    anyhow::bail!("{}: no such clip in the clips stage's output", path.display());
+                }
+                Ok(Clip::load(&self.humanoid, &path)?)
+            })
+            .collect::<Result<Vec<_>>>()?;
         let dir = self.expert_dir(name);
         let k = key(&[clips_key.to_string(), json(&self.config.track)]);
         stage(&format!("expert '{name}'"), &dir, k, || {
             let start = if dir.join(crate::track::RUN_POLICY).exists() { Start::Resume } else { Start::Fresh };
-            crate::track::train(&self.humanoid, vec![clip], &dir, &self.config.track, start)
+            crate::track::train(&self.humanoid, clips, &dir, &self.config.track, start)
         })
     }
 
@@ -185,30 +266,29 @@ impl Stages<'_> {
     }
 
     fn rollouts(&self, name: &str) -> Result<String> {
-        let expert_key = done(&self.expert_dir(name), &format!("expert:{name}"))?;
+        let expert = self.expert_of(name);
+        let expert_key = done(&self.expert_dir(expert), &format!("expert:{expert}"))?;
+        let clip = self.clips_dir().join(format!("{name}.clip.safetensors"));
         let dir = self.part_dir(name);
         stage(&format!("rollouts '{name}'"), &dir, self.collect_key(&[expert_key]), || {
             fresh_dataset(&dir)?;
-            crate::data::run_collect(
-                &self.humanoid,
-                vec![self.expert_dir(name)],
-                &[],
-                dir.clone(),
-                self.config.collect.clone(),
-            )
+            let (runs, collect) = (vec![self.expert_dir(expert)], self.config.collect.clone());
+            crate::data::run_collect(&self.humanoid, runs, &[clip], dir.clone(), collect)
         })
     }
 
     /// The dataset from every clip's expert: joined from `rollouts/` when every clip's are
     /// done for these experts (the same shards, bit for bit), else collected here.
-    fn collect(&self, names: &[String], expert_keys: &[String]) -> Result<String> {
+    /// `names` are the clips, `experts` and `expert_keys` the experts and their stamps.
+    fn collect(&self, names: &[String], experts: &[String], expert_keys: &[String]) -> Result<String> {
         let data = self.data_dir();
         stage("collect", &data, self.collect_key(expert_keys), || {
             let parts: Vec<PathBuf> = names.iter().map(|n| self.part_dir(n)).collect();
-            let joined = parts
-                .iter()
-                .zip(expert_keys)
-                .all(|(dir, k)| stamp_of(dir).as_deref() == Some(self.collect_key(std::slice::from_ref(k)).as_str()));
+            let key_of = |clip: &String| {
+                let k = &expert_keys[experts.iter().position(|e| e == self.expert_of(clip)).expect("its expert")];
+                self.collect_key(std::slice::from_ref(k))
+            };
+            let joined = parts.iter().zip(names).all(|(dir, clip)| stamp_of(dir) == Some(key_of(clip)));
             // A half-written dataset from an interrupted run is replaced, never appended to.
             let mut dataset = fresh_dataset(&data)?;
             if joined {
@@ -220,8 +300,8 @@ impl Stages<'_> {
                 }
                 return Ok(());
             }
-            let experts = names.iter().map(|n| self.expert_dir(n)).collect();
-            crate::data::run_collect(&self.humanoid, experts, &[], data.clone(), self.config.collect.clone())
+            let runs = experts.iter().map(|e| self.expert_dir(e)).collect();
+            crate::data::run_collect(&self.humanoid, runs, &[], data.clone(), self.config.collect.clone())
         })
     }
 
@@ -253,7 +333,8 @@ impl Stages<'_> {
 
     fn evaluate(&self, model_keys: &[String]) -> Result<String> {
         let eval_dir = self.out.join("eval");
-        let models: Vec<String> = OBJECTIVES.iter().map(|o| format!("{o}={}", self.model_dir(o).display())).collect();
+        let objectives = &self.config.pipeline.objectives;
+        let models: Vec<String> = objectives.iter().map(|o| format!("{o}={}", self.model_dir(o).display())).collect();
         let (quick, humanoid) = (self.quick, &self.humanoid);
         stage("evaluate", &eval_dir, key(&[model_keys.join(","), quick.to_string()]), || {
             let common = || Common::new(models.clone(), eval_dir.clone(), quick);
@@ -284,32 +365,57 @@ fn fresh_dataset(dir: &Path) -> Result<Dataset> {
     Ok(Dataset::open_or_create(dir)?)
 }
 
-/// Runs every stage in order, or only the stage `only` (whose inputs must be done).
-pub fn run(config: &Config, preset: &str, out: &Path, clip_files: &[PathBuf], only: Option<Only>) -> Result<()> {
+/// Runs every stage in order, or only the stage `only` (whose inputs must be done), or with
+/// `plan`, prints the stages after the clips as JSON and runs nothing.
+pub fn run(
+    config: &Config,
+    preset: &str,
+    out: &Path,
+    clip_files: &[PathBuf],
+    only: Option<Only>,
+    plan: bool,
+) -> Result<()> {
     let stages = Stages { config, humanoid: Humanoid::new(config.sim)?, out, quick: preset != "paper" };
     let started = Instant::now();
-    let experts_done = |names: &[String]| -> Result<Vec<String>> {
-        names.iter().map(|n| done(&stages.expert_dir(n), &format!("expert:{n}"))).collect()
+    let objectives = &config.pipeline.objectives;
+    let experts_done = |experts: &[String]| -> Result<Vec<String>> {
+        experts.iter().map(|e| done(&stages.expert_dir(e), &format!("expert:{e}"))).collect()
     };
     let models_done = || -> Result<Vec<String>> {
-        OBJECTIVES.iter().map(|o| done(&stages.model_dir(o), &format!("train:{o}"))).collect()
+        objectives.iter().map(|o| done(&stages.model_dir(o), &format!("train:{o}"))).collect()
     };
+    if plan {
+        done(&stages.clips_dir(), "clips")?;
+        let names = stages.clip_names()?;
+        let plan = serde_json::json!({
+            "experts": stages.expert_names(&names),
+            "rollouts": names.iter().map(|n| [n.as_str(), stages.expert_of(n)]).collect::<Vec<_>>(),
+            "models": objectives,
+        });
+        println!("{plan}");
+        return Ok(());
+    }
     match only {
         Some(Only::Clips) => stages.clips(clip_files).map(drop),
         Some(Only::Expert(name)) => stages.expert(&done(&stages.clips_dir(), "clips")?, &name).map(drop),
         Some(Only::Rollouts(name)) => stages.rollouts(&name).map(drop),
         Some(Only::Collect) => {
             let names = stages.clip_names()?;
-            stages.collect(&names, &experts_done(&names)?).map(drop)
+            let experts = stages.expert_names(&names);
+            stages.collect(&names, &experts, &experts_done(&experts)?).map(drop)
+        }
+        Some(Only::Train(objective)) if !objectives.contains(&objective) => {
+            anyhow::bail!("train:{objective}: the models of this pipeline are {objectives:?} ([pipeline] objectives)")
         }
         Some(Only::Train(objective)) => stages.train(&done(&stages.data_dir(), "collect")?, &objective).map(drop),
         Some(Only::Evaluate) => stages.evaluate(&models_done()?).map(drop),
         None => {
             let clips_key = stages.clips(clip_files)?;
             let names = stages.clip_names()?;
-            let expert_keys = names.iter().map(|n| stages.expert(&clips_key, n)).collect::<Result<Vec<_>>>()?;
-            let data_key = stages.collect(&names, &expert_keys)?;
-            let model_keys = OBJECTIVES.iter().map(|o| stages.train(&data_key, o)).collect::<Result<Vec<_>>>()?;
+            let experts = stages.expert_names(&names);
+            let expert_keys = experts.iter().map(|e| stages.expert(&clips_key, e)).collect::<Result<Vec<_>>>()?;
+            let data_key = stages.collect(&names, &experts, &expert_keys)?;
+            let model_keys = objectives.iter().map(|o| stages.train(&data_key, o)).collect::<Result<Vec<_>>>()?;
             stages.evaluate(&model_keys)?;
             eprintln!(
                 "pipeline finished in {:.1} min: report {}, models in {}",

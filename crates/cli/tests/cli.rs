@@ -420,6 +420,31 @@ fn the_pipeline_runs_every_stage_then_skips_what_is_done() {
     ok(&dir, &["pipeline", "-o", "q", "--only", "clips", "--clip", "gen/short.clip.safetensors"]);
     let clips: Vec<_> = std::fs::read_dir(dir.join("q/clips")).unwrap().map(|e| e.unwrap().file_name()).collect();
     assert!(clips.contains(&"short.clip.safetensors".into()) && clips.len() == 2, "{clips:?}"); // and stage.json
+    // One policy over both clips and the FM model alone ([pipeline]): the plan names them, and
+    // stage by stage the dataset is the one the whole pipeline collects.
+    std::fs::write(dir.join("one.toml"), "[pipeline]\nexperts = \"one\"\nobjectives = [\"fm\"]\n").unwrap();
+    let both = ["--clip", "gen/short.clip.safetensors", "p/clips/walk_straight.clip.safetensors"];
+    let one = |out: &str, rest: &[&str]| ok(&dir, &[&["--config", "one.toml", "pipeline", "-o", out], rest].concat());
+    one("r", &both);
+    assert!(dir.join("r/experts/all/policy.safetensors").exists() && !dir.join("r/model/ddpm").exists());
+    one("s", &[&["--only", "clips"], &both[..]].concat());
+    let plan = one("s", &["--plan"]);
+    assert!(plan.contains(r#""experts":["all"]"#) && plan.contains(r#"["short","all"]"#), "{plan}");
+    assert!(plan.contains(r#""models":["fm"]"#), "{plan}");
+    for stage in ["expert:all", "rollouts:short", "rollouts:walk_straight", "collect"] {
+        one("s", &["--only", stage]);
+    }
+    for file in ["data/short.rollouts.safetensors", "data/walk_straight.rollouts.safetensors"] {
+        assert!(common::tensor_bytes(&dir.join("r").join(file)) == common::tensor_bytes(&dir.join("s").join(file)));
+    }
+    let (success, text) = flowmimic(&dir, &["--config", "one.toml", "pipeline", "-o", "s", "--only", "train:ddpm"]);
+    assert!(!success && text.contains("the models of this pipeline are [\"fm\"]"), "{text}");
+    // The walking corpus, when no clip is given.
+    std::fs::write(dir.join("corpus.toml"), "[pipeline]\nclips = \"walking-corpus\"\n").unwrap();
+    ok(&dir, &["--config", "corpus.toml", "pipeline", "-o", "c", "--only", "clips"]);
+    for clip in ["wander_4", "walk_back", "02_01", "humanoid3d_walk"] {
+        assert!(dir.join(format!("c/clips/{clip}.clip.safetensors")).exists(), "{clip}");
+    }
     // Other model settings leave the stages before the model alone, and refuse to overwrite
     // the trained model.
     std::fs::write(dir.join("wider.toml"), "[model]\nd_model = 24\n").unwrap();
