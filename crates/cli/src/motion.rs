@@ -84,10 +84,10 @@ pub enum MotionCommand {
     /// subfolders, with its quality table and coverage.
     Corpus {
         /// Wandering walks to generate.
-        #[arg(long, default_value_t = 4)]
+        #[arg(long, default_value_t = flowmimic_motion::corpus::WANDERING_WALKS)]
         walks: usize,
         /// Length of each wandering walk, s.
-        #[arg(long, default_value_t = 40.0)]
+        #[arg(long, default_value_t = flowmimic_motion::corpus::WANDERING_SECONDS)]
         duration: f64,
         /// Wandering walks whose hands reach for targets (reach_1, ...), beside 30 s of standing
         /// reaches (reach_stand) when there are any; none with --walking-only.
@@ -99,7 +99,7 @@ pub enum MotionCommand {
         transitions: usize,
         /// Folder of captures to import (relative paths also from the checkout; skipped with a
         /// note when it does not exist).
-        #[arg(long, default_value = "../shared/data/mocap")]
+        #[arg(long, default_value = crate::paths::MOCAP)]
         mocap: PathBuf,
         /// The walking corpus alone (the folder's top level, not arms/ and walks/): the clips
         /// the `corpus` expert and the `fm` model were made from.
@@ -217,7 +217,8 @@ fn row(humanoid: &Arc<Humanoid>, clip: &Clip) {
     );
 }
 
-fn clip_path(out: &Path, name: &str) -> PathBuf {
+/// Where the clip `name` is written in `out`.
+pub(crate) fn clip_path(out: &Path, name: &str) -> PathBuf {
     out.join(format!("{name}.clip.safetensors"))
 }
 

@@ -4,6 +4,8 @@ use std::path::{Path, PathBuf};
 
 /// The shipped default guidance model, relative to the checkout.
 pub const SHIPPED_MODEL: &str = "pretrained/models/fm";
+/// The captures the corpus reads, beside the checkout.
+pub const MOCAP: &str = "../shared/data/mocap";
 /// The Flow Matching model `make run` (`flowmimic pipeline`) trains.
 pub const PIPELINE_MODEL: &str = "runs/pipeline/model/fm";
 

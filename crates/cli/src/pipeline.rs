@@ -7,10 +7,11 @@
 
 use crate::config::Config;
 use crate::eval::{self, Common, EvalCommand, Sweep};
+use crate::motion::clip_path;
 use crate::track::Start;
 use anyhow::{Context, Result};
 use flowmimic_data::Dataset;
-use flowmimic_motion::{Clip, CorpusParams};
+use flowmimic_motion::{Clip, CorpusParams, corpus};
 use flowmimic_sim::Humanoid;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -111,22 +112,31 @@ fn clips(humanoid: &Arc<Humanoid>, files: &[PathBuf], source: ClipSource, dir: &
         ClipSource::WalkingCorpus if files.is_empty() => None,
         _ => Some(crate::track::load_clips(humanoid, files)?),
     };
-    if let Ok(entries) = std::fs::read_dir(dir) {
-        for old in entries.filter_map(|e| e.ok().map(|e| e.path())) {
-            if old.to_string_lossy().ends_with(".clip.safetensors") {
-                std::fs::remove_file(&old).with_context(|| format!("removing {}", old.display()))?;
-            }
-        }
+    for old in clip_files(dir).unwrap_or_default() {
+        std::fs::remove_file(&old).with_context(|| format!("removing {}", old.display()))?;
     }
     let Some(clips) = clips else {
-        let mocap = Some(crate::paths::resolve(Path::new("../shared/data/mocap")));
-        let params = CorpusParams { walks: 4, duration: 40.0, reaching: 0, transitions: 0, mocap, walking_only: true };
+        let mocap = Some(crate::paths::resolve(Path::new(crate::paths::MOCAP)));
+        let (walks, duration) = (corpus::WANDERING_WALKS, corpus::WANDERING_SECONDS);
+        let params = CorpusParams { walks, duration, reaching: 0, transitions: 0, mocap, walking_only: true };
         return crate::motion::corpus(humanoid, params, dir).map(drop);
     };
     for clip in &clips {
-        clip.save(&dir.join(format!("{}.clip.safetensors", clip.name)))?;
+        clip.save(&clip_path(dir, &clip.name))?;
     }
     Ok(())
+}
+
+const CLIP_SUFFIX: &str = ".clip.safetensors";
+
+/// The clip files in `dir`, in name order.
+fn clip_files(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.to_string_lossy().ends_with(CLIP_SUFFIX))
+        .collect();
+    files.sort();
+    Ok(files)
 }
 
 /// One stage of the pipeline, to run alone (`--only`): on a cluster each is a task, the
@@ -134,7 +144,7 @@ fn clips(humanoid: &Arc<Humanoid>, files: &[PathBuf], source: ClipSource, dir: &
 #[derive(Clone, Debug, PartialEq)]
 pub enum Only {
     Clips,
-    /// The expert of one clip (by name).
+    /// An expert by name: a clip's own, or `all` with one policy over every clip.
     Expert(String),
     /// The noisy rollouts of one clip's expert, a dataset of its own in `rollouts/<clip>`.
     Rollouts(String),
@@ -157,7 +167,8 @@ impl std::str::FromStr for Only {
             ("train", Some(o)) => Ok(Only::Train(o)),
             ("evaluate", None) => Ok(Only::Evaluate),
             _ => Err(format!(
-                "'{s}' is not a stage: clips, expert:CLIP, rollouts:CLIP, collect, train:fm, train:ddpm or evaluate"
+                "'{s}' is not a stage: clips, expert:CLIP (expert:all with one policy), rollouts:CLIP, collect, \
+                 train:fm, train:ddpm or evaluate"
             )),
         }
     }
@@ -227,12 +238,8 @@ impl Stages<'_> {
     /// The names of the clips the clips stage wrote, in name order.
     fn clip_names(&self) -> Result<Vec<String>> {
         let dir = self.clips_dir();
-        let entries = std::fs::read_dir(&dir).with_context(|| format!("reading {}", dir.display()))?;
-        let mut names: Vec<String> = entries
-            .filter_map(|e| e.ok()?.file_name().to_str()?.strip_suffix(".clip.safetensors").map(String::from))
-            .collect();
-        names.sort();
-        Ok(names)
+        let files = clip_files(&dir).with_context(|| format!("reading {}", dir.display()))?;
+        Ok(files.iter().filter_map(|f| f.file_name()?.to_str()?.strip_suffix(CLIP_SUFFIX).map(String::from)).collect())
     }
 
     /// The expert `name`: a clip's own, or with one policy, `all` over every clip.
@@ -245,7 +252,7 @@ impl Stages<'_> {
         let clips = clips
             .iter()
             .map(|clip| {
-                let path = self.clips_dir().join(format!("{clip}.clip.safetensors"));
+                let path = clip_path(&self.clips_dir(), clip);
                 if !path.exists() {
                     anyhow::bail!("{}: no such clip in the clips stage's output", path.display());
                 }
@@ -268,7 +275,7 @@ impl Stages<'_> {
     fn rollouts(&self, name: &str) -> Result<String> {
         let expert = self.expert_of(name);
         let expert_key = done(&self.expert_dir(expert), &format!("expert:{expert}"))?;
-        let clip = self.clips_dir().join(format!("{name}.clip.safetensors"));
+        let clip = clip_path(&self.clips_dir(), name);
         let dir = self.part_dir(name);
         stage(&format!("rollouts '{name}'"), &dir, self.collect_key(&[expert_key]), || {
             fresh_dataset(&dir)?;

@@ -23,6 +23,10 @@ pub fn backward_walk() -> GaitParams {
     GaitParams { speed: -0.6, duration: 10.0, ..GaitParams::default() }
 }
 
+/// The corpus's wandering walks by default: how many, and how long each is, s.
+pub const WANDERING_WALKS: usize = 4;
+pub const WANDERING_SECONDS: f64 = 40.0;
+
 /// Share of the time a hand is out in the corpus's reaching walks (`reach_<seed>`), and in its
 /// standing reaches (`reach_stand`).
 pub const REACH_SHARE: f64 = 0.35;
