@@ -676,7 +676,7 @@ fn clip_of(
         aim.resize(clip.len(), DVec3::ZERO);
         // The miss is measured while the hand holds; on the way out and back the hand aims
         // where it will hold (a miss measured there would count the way as a miss).
-        for (k, (r, target)) in schedule.reaches.iter().zip(&targets).enumerate() {
+        for (r, target) in schedule.reaches.iter().zip(&targets) {
             let frames = |t: f64| ((t * CONTROL_HZ).round() as usize).min(clip.len() - 1);
             let (hold_start, hold_end) = (frames(r.hold_start()).max(1), frames(r.hold_end()));
             let hand = [body::L_HAND, body::R_HAND][r.side];
@@ -684,13 +684,9 @@ fn clip_of(
                 let miss = clip.bodies[i].pos[hand] - report.placement.apply(i, *target);
                 aim[i] -= yaw_quat(report.placement.yaw) * miss / report.placement.scale;
             }
-            let during = |i: usize| schedule.reach_at(i as f64 / CONTROL_HZ).is_some_and(|(j, _)| j == k);
-            for i in (0..hold_start).rev().take_while(|&i| during(i)) {
-                aim[i] = aim[hold_start];
-            }
-            for i in (hold_end + 1..clip.len()).take_while(|&i| during(i)) {
-                aim[i] = aim[hold_end];
-            }
+            let (held_start, held_end) = (aim[hold_start], aim[hold_end]);
+            aim[frames(r.start)..hold_start].fill(held_start);
+            aim[hold_end + 1..=frames(r.end())].fill(held_end);
         }
         out = retarget(humanoid, &landmarks_aimed(schedule, &aim)?, name, origin, false)?;
     }
