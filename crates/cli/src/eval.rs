@@ -7,7 +7,7 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use flowmimic_control::StepReport;
 use flowmimic_eval::experiments::{Study, Trials};
-use flowmimic_eval::protocols::{ForestSetup, ReachSetup};
+use flowmimic_eval::protocols::{ForestSetup, ReachSetup, STANDING_HEIGHTS};
 use flowmimic_eval::sweep::{EvalModel, Rows};
 use flowmimic_sim::Humanoid;
 use std::path::{Path, PathBuf};
@@ -93,10 +93,16 @@ pub enum EvalCommand {
         common: Common,
         #[command(flatten)]
         sweep: Sweep,
-        /// Target heights `LOW,HIGH` (m), drawn uniformly. The walking hand swings 0.74-0.85 m
-        /// high; the default reaches above it, where walking-only data has no hand.
-        #[arg(long, value_delimiter = ',', default_values_t = REACH_HEIGHTS)]
+        /// Target heights `LOW,HIGH` (m), drawn uniformly (default 0.9,1.5; standing 0.5,1.6).
+        /// The walking hand swings 0.74-0.85 m high; the default reaches above it, where
+        /// walking-only data has no hand.
+        #[arg(long, value_delimiter = ',')]
         heights: Vec<f64>,
+        /// Reach while standing instead: targets 0.2-0.65 m out from the right shoulder, ahead
+        /// to the side; within 0.10 m counts, with the median time to get there. Trials start
+        /// from a generated standing clip unless --clip is given.
+        #[arg(long, conflicts_with = "approach")]
+        standing: bool,
         /// Walk up to each target (a pursuit command toward a point beside it that brings the
         /// hand there) instead of walking on with the hand's cost alone (true without a value;
         /// default: the first model's recommended, else false).
@@ -262,7 +268,10 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         | EvalCommand::Latency { common, .. } => common.clone(),
     };
     let models = load_models(&common.models)?;
-    let clip = start_clip(humanoid, common.clip.as_deref())?;
+    let clip = match &cmd {
+        EvalCommand::Reach { standing: true, .. } if common.clip.is_none() => flowmimic_motion::standing(humanoid)?,
+        _ => start_clip(humanoid, common.clip.as_deref())?,
+    };
     // Settings left out come from the first model's recommended ones for the protocol's task.
     let (task, nfe, approach) = match &cmd {
         EvalCommand::Joystick { sweep, .. } => ("joystick", sweep.nfe, None),
@@ -303,7 +312,12 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     lib(match &cmd {
         EvalCommand::Survival { nfe, seconds, .. } => study.survival(nfe, *seconds),
         EvalCommand::Joystick { sweep, .. } => study.joystick(&scales(&sweep.scales, true), chosen.nfe),
+        EvalCommand::Reach { sweep, heights, standing: true, .. } => {
+            let heights = if heights.is_empty() { STANDING_HEIGHTS } else { reach_heights(heights)? };
+            study.reach_standing(&scales(&sweep.scales, true), chosen.nfe, heights)
+        }
         EvalCommand::Reach { sweep, heights, .. } => {
+            let heights = if heights.is_empty() { &REACH_HEIGHTS[..] } else { heights };
             study.reach(&scales(&sweep.scales, true), chosen.nfe, reach_setup(heights)?)
         }
         EvalCommand::Waypoint { sweep, .. } => study.waypoint(&scales(&sweep.scales, true), chosen.nfe),

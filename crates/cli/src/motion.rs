@@ -59,8 +59,9 @@ pub enum MotionCommand {
         /// m/s) or a turn on the spot (0.3-0.7 rad/s).
         #[arg(long, requires = "wander")]
         transitions: bool,
-        /// Hands reach for targets and back while the walk slows (0.5-1.7 m high, 0.2-0.7 m
-        /// out from the shoulder, ahead and to the side; out 0.4-1.0 s, held 0.3-1.5 s): the
+        /// Hands reach for targets and back while the walk slows (0.4-1.7 m high, more often
+        /// high than low; 0.2-0.7 m out from the shoulder, ahead and to the side; out 0.4-1.0 s,
+        /// held 0.3-1.5 s): the
         /// share of the time a hand is out, 0.5 when given without a value.
         #[arg(long, num_args = 0..=1, default_missing_value = "0.5", value_name = "SHARE")]
         reach: Option<f64>,

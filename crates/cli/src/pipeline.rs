@@ -355,6 +355,7 @@ impl Stages<'_> {
                     common: fm_only(),
                     sweep: sweep(),
                     heights: eval::REACH_HEIGHTS.to_vec(),
+                    standing: false,
                     approach: Some(false),
                 },
                 humanoid,

@@ -204,6 +204,11 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     assert_eq!(rows[0][5], "1.000", "{text}");
     let share: f64 = rows[1][5].parse().unwrap();
     assert!((share - rmse(&rows[1]) / rmse(&rows[0])).abs() < 2e-3, "{text}");
+    // Reaching while standing starts from a standing clip and reports the median time to reach.
+    let standing = ["eval", "reach", "--standing", "--model", "fm=fm", "--scales", "0", "--trials", "2", "-o", "eval"];
+    let text = ok(dir, &standing);
+    assert!(text.contains("| within 0.10 m | median time to reach (s) |"), "{text}");
+    assert!(dir.join("eval/reach-standing.csv").exists(), "{text}");
     let text = ok(dir, &["eval", "waypoint", "--model", "fm=fm", "--scales", "10", "--trials", "1", "-o", "eval"]);
     assert!(text.contains("| arrived |") && dir.join("eval/waypoint.csv").exists(), "{text}");
     // Guiding the last solver step too is another point: measured anew and said in the report.

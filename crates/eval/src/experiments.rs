@@ -314,6 +314,57 @@ impl Study<'_> {
         )
     }
 
+    /// Reaching while standing: the share of trials whose hand comes within 0.10 m, and the
+    /// median time to get there, against guidance scale.
+    pub fn reach_standing(&self, scales: &[f32], nfe: usize, heights: (f64, f64)) -> Result<()> {
+        let trials = self.trials(20, 4);
+        let (low, high) = heights;
+        let exp = Experiment {
+            name: "reach-standing",
+            settings: self.settings(&format!("heights {low}-{high} m")),
+            title: "Reaching while standing",
+            columns: &["closest", "reached", "seconds", "fell"],
+            plot: "reached",
+            x_label: "guidance scale w",
+            y_label: "share within 0.10 m",
+            header: "| model | H | w | closest (m) | within 0.10 m | median time to reach (s) | falls |\n|---|---|---|---|---|---|---|",
+        };
+        let (near, far) = protocols::STANDING_DISTANCES;
+        let notes = format!(
+            "Standing (a zero joystick command), the right hand asked for a target {low}-{high} m high, {near}-{far} m out \
+             from where the right shoulder starts (horizontally, from straight ahead to straight out to the side); 4 s; \
+             reached when the hand comes within {} m; the median time to reach counts a trial that never reaches as \
+             never (a dash when half or more never do); NFE {nfe}, {trials} trials.",
+            protocols::STANDING_REACHED
+        );
+        self.guided_sweep(
+            &exp,
+            (scales, nfe, trials, 120),
+            |bench, point, report| {
+                let r = protocols::reach_standing(bench, point, heights, trials, report)?;
+                Ok(r.iter()
+                    .map(|t| {
+                        vec![t.reach.min, rate(t.seconds_to_reach.is_finite()), t.seconds_to_reach, rate(t.reach.fell)]
+                    })
+                    .collect())
+            },
+            |m, s, _| {
+                let median = s.median["seconds"];
+                let median = if median.is_finite() { format!("{median:.2}") } else { "—".into() };
+                format!(
+                    "| {} | {} | {} | {:.3} | {:.0}% | {median} | {:.0}% |",
+                    m.label,
+                    s.horizon,
+                    s.scale,
+                    s.mean["closest"],
+                    100.0 * s.mean["reached"],
+                    100.0 * s.mean["fell"]
+                )
+            },
+            &notes,
+        )
+    }
+
     /// Waypoint navigation: arrival rate against guidance scale.
     pub fn waypoint(&self, scales: &[f32], nfe: usize) -> Result<()> {
         let trials = self.trials(20, 4);

@@ -2,7 +2,9 @@
 //! with all trials batched into one set of environments.
 
 use crate::{HAND_REACHED, composition_success, reach_errors, velocity_rmse};
-use flowmimic_control::{Adaptive, ControlConfig, ControlError, Hand, Rollout, StepReport, Task, controller};
+use flowmimic_control::{
+    Adaptive, ControlConfig, ControlError, Hand, JoystickSegment, Rollout, StepReport, Task, controller,
+};
 use flowmimic_geom::{CharFrame, DVec3, wrap_angle};
 use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_motion::Clip;
@@ -244,6 +246,66 @@ pub fn reach(
         .collect();
     let r = bench.run("reach", tasks, point, 4.0, false, on_step)?;
     Ok((0..trials).map(|e| reach_trial(&r, e).expect("reach task")).collect())
+}
+
+/// How near the hand comes for a standing reach to count (m): closer than walking's
+/// [`HAND_REACHED`], since the walker has time to settle on it.
+pub const STANDING_REACHED: f64 = 0.10;
+
+/// Targets of a standing reach: heights (m) and how far out from the right shoulder, m
+/// (horizontally, from straight ahead to straight out to the side).
+pub const STANDING_HEIGHTS: (f64, f64) = (0.5, 1.6);
+pub const STANDING_DISTANCES: (f64, f64) = (0.2, 0.65);
+
+/// One standing reach: the hand's distances, and when it first came within
+/// [`STANDING_REACHED`] (s after the start; infinite when it never did).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StandingReachTrial {
+    pub reach: ReachTrial,
+    pub seconds_to_reach: f64,
+}
+
+/// Reaching while standing (the reach issue's protocol): the walker is asked to stand (a zero
+/// joystick command) and to bring its right hand to a target [`STANDING_DISTANCES`] out from
+/// where its right shoulder starts, ahead to the right side, at `heights`; 4 s. Start from a
+/// standing clip: from a walk, the first steps carry the shoulder past the target.
+pub fn reach_standing(
+    bench: &Bench,
+    point: Point,
+    heights: (f64, f64),
+    trials: usize,
+    on_step: impl FnMut(&StepReport),
+) -> Result<Vec<StandingReachTrial>, ControlError> {
+    let mut rng = StdRng::seed_from_u64(point.seed ^ 0x57A4D);
+    let history = bench.model.layout().spec.history;
+    let stand = JoystickSegment { seconds: 4.0, vx: 0.0, vy: 0.0, yaw_rate: 0.0 };
+    let tasks: Vec<Task> = (0..trials)
+        .map(|e| {
+            let start = bench.start_pose(e);
+            let frame = controller::start_frame(bench.clip.len(), history, e);
+            let shoulder = start.point(bench.clip.bodies[frame].pos[body::R_SHOULDER]);
+            let (distance, azimuth) = (
+                rng.random_range(STANDING_DISTANCES.0..STANDING_DISTANCES.1),
+                rng.random_range(0.0..std::f64::consts::FRAC_PI_2),
+            );
+            let height = rng.random_range(heights.0..=heights.1);
+            let local =
+                DVec3::new(shoulder.x + distance * azimuth.cos(), shoulder.y - distance * azimuth.sin(), height);
+            let t = start.point_to_world(local);
+            Task { joystick: vec![stand], reach: Some((Hand::Right, [t.x, t.y, height])), ..Task::walk() }
+        })
+        .collect();
+    let r = bench.run("reach-standing", tasks, point, 4.0, false, on_step)?;
+    Ok((0..trials)
+        .map(|e| {
+            let reach = reach_trial(&r, e).expect("reach task");
+            let target = r.info.tasks[e].reach.expect("reach task").1;
+            let first =
+                (1..=r.survived[e]).find(|&k| distance(&r.body(e, k, body::R_HAND), &target) <= STANDING_REACHED);
+            let seconds_to_reach = first.map_or(f64::INFINITY, |k| k as f64 / CONTROL_HZ);
+            StandingReachTrial { reach, seconds_to_reach }
+        })
+        .collect())
 }
 
 /// The hand-to-target distances of one environment of a rollout whose task reaches (`None`

@@ -183,6 +183,8 @@ pub struct Summary {
     pub trials: usize,
     pub mean: BTreeMap<String, f64>,
     pub std: BTreeMap<String, f64>,
+    /// Over the trials with a value, infinite ones included (a time never reached).
+    pub median: BTreeMap<String, f64>,
 }
 
 pub fn summary(m: &EvalModel, point: Point, rows: &[Vec<f64>], columns: &[&str]) -> Summary {
@@ -199,6 +201,18 @@ pub fn summary(m: &EvalModel, point: Point, rows: &[Vec<f64>], columns: &[&str])
         trials: rows.len(),
         mean: s.iter().map(|(k, v)| (k.clone(), v.0)).collect(),
         std: s.iter().map(|(k, v)| (k.clone(), v.1)).collect(),
+        median: columns.iter().enumerate().map(|(j, c)| (c.to_string(), median(rows.iter().map(|r| r[j])))).collect(),
+    }
+}
+
+/// The median of the values that are not NaN (NaN when there are none).
+fn median(values: impl Iterator<Item = f64>) -> f64 {
+    let mut v: Vec<f64> = values.filter(|v| !v.is_nan()).collect();
+    v.sort_by(f64::total_cmp);
+    match v.len() {
+        0 => f64::NAN,
+        n if n % 2 == 1 => v[n / 2],
+        n => 0.5 * (v[n / 2 - 1] + v[n / 2]),
     }
 }
 
@@ -347,4 +361,16 @@ pub fn sweep(
         falls.save(&out.join(format!("{}_falls", exp.name)))?;
     }
     Ok((summaries, table))
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn the_median_counts_a_time_never_reached_and_skips_missing_values() {
+        let m = |v: &[f64]| super::median(v.iter().copied());
+        assert_eq!(m(&[3.0, 1.0, f64::INFINITY]), 3.0);
+        assert_eq!(m(&[1.0, f64::INFINITY]), f64::INFINITY);
+        assert_eq!(m(&[2.0, f64::NAN, 1.0]), 1.5);
+        assert!(m(&[f64::NAN]).is_nan());
+    }
 }

@@ -29,10 +29,10 @@ pub const WANDERING_SECONDS: f64 = 40.0;
 
 /// Share of the time a hand is out in the corpus's reaching walks (`reach_<seed>`), and in its
 /// standing reaches (`reach_stand`).
-pub const REACH_SHARE: f64 = 0.35;
-pub const STAND_REACH_SHARE: f64 = 0.7;
+pub const REACH_SHARE: f64 = 0.6;
+pub const STAND_REACH_SHARE: f64 = 0.9;
 
-/// The standing reaches: 30 s in place, a hand out 70% of the time.
+/// The standing reaches: 30 s in place, a hand out 90% of the time.
 pub fn standing_reaches() -> GaitParams {
     let reach = Some(Reaching { share: STAND_REACH_SHARE, seed: 0 });
     GaitParams { speed: 0.0, duration: 30.0, reach, ..GaitParams::default() }

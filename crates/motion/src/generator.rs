@@ -725,6 +725,12 @@ pub fn straight_walk(humanoid: &Arc<Humanoid>) -> Result<Clip, MotionError> {
     Ok(generate(humanoid, "walk_straight", &walk)?.0)
 }
 
+/// The generated 10 s of standing still, `stand`: where standing protocols start.
+pub fn standing(humanoid: &Arc<Humanoid>) -> Result<Clip, MotionError> {
+    let stand = GaitParams { speed: 0.0, duration: 10.0, ..Default::default() };
+    Ok(generate(humanoid, "stand", &stand)?.0)
+}
+
 /// `count` diverse walks from `seed` (the same seed gives the same set).
 pub fn sample_set(count: usize, seed: u64, duration: f64) -> Result<Vec<GaitParams>, MotionError> {
     // Every sampled walk would fail on a bad duration: refuse it before drawing any.

@@ -17,7 +17,9 @@ pub mod retarget;
 pub use clip::{Clip, Quality};
 pub use corpus::{Corpus, CorpusParams, corpus};
 pub use coverage::Coverage;
-pub use generator::{Command, GaitParams, Schedule, Segment, WanderParams, generate, scheduled, straight_walk, wander};
+pub use generator::{
+    Command, GaitParams, Schedule, Segment, WanderParams, generate, scheduled, standing, straight_walk, wander,
+};
 
 pub use landmarks::{Units, UpAxis};
 pub use retarget::RetargetReport;

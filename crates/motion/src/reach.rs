@@ -20,12 +20,19 @@ use std::f64::consts::FRAC_PI_2;
 /// most 0.08 m of drift over the longest hold).
 pub const HOLD_SPEED: f64 = 0.05;
 pub const HOLD_TURN: f64 = 0.05;
-/// Target heights above the ground, m, and horizontal distances from the shoulder, m.
+/// Target heights above the ground, m, and horizontal distances from the shoulder, m. Half the
+/// heights are drawn over the whole range and half above [`HIGH`] (77% above 1.1 m in all, 37%
+/// above 1.4 m): a hand high up is what walking data never holds, and low targets still come up.
 pub const HEIGHTS: [f64; 2] = [0.4, 1.7];
+pub const HIGH: f64 = 1.1;
 pub const DISTANCES: [f64; 2] = [0.2, 0.7];
 /// Seconds to bring the hand out, to hold it, and to bring it back.
 pub const APPROACH: [f64; 2] = [0.4, 1.0];
 pub const HOLD: [f64; 2] = [0.3, 1.5];
+/// Fastest mean speed of a hand on its way out or back, m/s: approaches drawn quicker than the
+/// way allows are slowed to it (within [`APPROACH`]), so a hand going high peaks near 3 m/s
+/// (smoothstep's peak is 1.5 times its mean), as a person's does, not at 6.
+const HAND_SPEED: f64 = 2.0;
 /// Most the torso leans, rad, and the pelvis drops (knees bent), m.
 pub const MAX_LEAN: f64 = 1.2;
 pub const MAX_DROP: f64 = 0.15;
@@ -95,6 +102,14 @@ impl Reach {
         DVec3::new(self.distance * self.azimuth.cos(), sign * self.distance * self.azimuth.sin(), 0.0)
     }
 
+    /// Roughly how far the hand goes from hanging at the side to the target, m.
+    fn way(&self) -> f64 {
+        let (upper, lower) = arm_bones();
+        let shoulder = Trunk::standing(DVec3::ZERO, 0.0, Bend::NONE).shoulder(self.side);
+        let hanging = shoulder - DVec3::Z * (upper + lower);
+        (self.target(DVec3::ZERO, 0.0) - hanging).length()
+    }
+
     /// The target in the world for a walker at `root` facing `yaw` at the middle of the hold.
     pub fn target(&self, root: DVec3, yaw: f64) -> DVec3 {
         let shoulder = Trunk::standing(root, yaw, Bend::NONE).shoulder(self.side);
@@ -132,18 +147,20 @@ impl Reaching {
         let mut t = rng.random_range(0.3..1.0_f64.max(mean_gap));
         loop {
             let r = loop {
+                let lowest = if rng.random_bool(0.5) { HIGH } else { HEIGHTS[0] };
                 let r = Reach {
                     start: t,
                     approach: rng.random_range(APPROACH[0]..APPROACH[1]),
                     hold: rng.random_range(HOLD[0]..HOLD[1]),
                     back: rng.random_range(APPROACH[0]..APPROACH[1]),
                     side: rng.random_range(0..2),
-                    height: rng.random_range(HEIGHTS[0]..HEIGHTS[1]),
+                    height: rng.random_range(lowest..HEIGHTS[1]),
                     distance: rng.random_range(DISTANCES[0]..DISTANCES[1]),
                     azimuth: rng.random_range(0.0..FRAC_PI_2),
                 };
                 if reachable(&r) {
-                    break r;
+                    let least = (r.way() / HAND_SPEED).min(APPROACH[1]);
+                    break Reach { approach: r.approach.max(least), back: r.back.max(least), ..r };
                 }
             };
             if r.end() > duration - 0.1 {

@@ -131,6 +131,7 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
     }
     assert!(reaches >= 40, "only {reaches} reaches");
     eprintln!("reaching slowly, the centre of mass was at most {worst_balance:.3} m from between the feet");
-    // Targets span the range, from near the floor to above the head.
-    assert!(lowest < 0.55 && highest > 1.55, "targets {lowest:.2}-{highest:.2} m high");
+    // Targets span the range, from near the floor to above the head (half of them are drawn
+    // above 1.1 m, so fewer come low than when all were drawn evenly).
+    assert!(lowest < 0.6 && highest > 1.6, "targets {lowest:.2}-{highest:.2} m high");
 }

@@ -11,6 +11,7 @@ use flowmimic_motion::Clip;
 use flowmimic_sim::skeleton::{NUM_BODIES, body};
 use flowmimic_sim::{BodyKinematics, Env, Humanoid, NUM_DOFS, SimError};
 use rand::Rng;
+use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
@@ -223,6 +224,8 @@ pub struct Tracker {
     pub start: usize,
     prev_residual: Vec<f32>,
     next_push: f64,
+    /// This episode's standard deviation of noise on the executed action, policy output units.
+    action_noise: f32,
 }
 
 /// The reference: a clip and derived per-frame quantities.
@@ -261,7 +264,14 @@ fn gravity_z(r: DQuat) -> f64 {
 
 impl Tracker {
     pub fn new(humanoid: &Arc<Humanoid>) -> Self {
-        Self { env: humanoid.env(), frame: 0, start: 0, prev_residual: vec![0.0; NUM_DOFS], next_push: 0.0 }
+        Self {
+            env: humanoid.env(),
+            frame: 0,
+            start: 0,
+            prev_residual: vec![0.0; NUM_DOFS],
+            next_push: 0.0,
+            action_noise: 0.0,
+        }
     }
 
     pub fn env(&self) -> &Env {
@@ -290,6 +300,8 @@ impl Tracker {
         self.start = frame;
         self.prev_residual.fill(0.0);
         self.next_push = self.env.time() + rng.random_range(cfg.push_interval[0]..=cfg.push_interval[1]);
+        // Drawn only when asked for, so that runs without it keep their random stream.
+        self.action_noise = if cfg.action_noise > 0.0 { rng.random_range(0.0..=cfg.action_noise) as f32 } else { 0.0 };
         Ok(())
     }
 
@@ -330,7 +342,8 @@ impl Tracker {
         self.env.humanoid().actions().action_for(&target)
     }
 
-    /// One control step with policy output `u`: returns the reward terms and how it ended.
+    /// One control step with policy output `u`, executed with this episode's action noise:
+    /// returns the reward terms and how it ended.
     pub fn step(
         &mut self,
         reference: &Reference,
@@ -338,7 +351,13 @@ impl Tracker {
         cfg: &TrackConfig,
         rng: &mut impl Rng,
     ) -> (RewardTerms, Ending) {
-        let a = self.action(reference, u, cfg);
+        let a = if self.action_noise > 0.0 {
+            let noise = Normal::new(0.0, self.action_noise).expect("a positive finite deviation");
+            let noisy: Vec<f32> = u.iter().map(|x| x + noise.sample(rng)).collect();
+            self.action(reference, &noisy, cfg)
+        } else {
+            self.action(reference, u, cfg)
+        };
         if self.advance(&a, cfg, rng).is_err() {
             return (RewardTerms::default(), Ending::Diverged);
         }

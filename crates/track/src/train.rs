@@ -55,6 +55,11 @@ pub struct TrackConfig {
     pub action_scale: f64,
     /// Uniform noise on hinge angles (rad) and root velocity (m/s) at reset.
     pub init_noise: f64,
+    /// Largest standard deviation of Gaussian noise on the executed action, in policy output
+    /// units (`action_scale` rad; 0 disables it): each episode draws its own from 0 to this. The
+    /// data's rollouts execute noisy actions (a collection sigma is `sigma * noise_unit_rad /
+    /// action_scale` of these units: 0.43 at sigma 0.16), so the experts practise them.
+    pub action_noise: f64,
     /// Largest random push, m/s (0 disables pushes).
     pub push_max: f64,
     /// Seconds between pushes, drawn uniformly.
@@ -112,6 +117,7 @@ impl Default for TrackConfig {
             init_log_std: -0.5,
             action_scale: 0.15,
             init_noise: 0.05,
+            action_noise: 0.0,
             push_max: 0.5,
             push_interval: [1.0, 3.0],
             max_height_error: 0.25,
@@ -162,11 +168,18 @@ impl TrackConfig {
             return bad("gamma, lambda, bin_smoothing, uniform_share, clip_length_share, clip_failure_share and \
                  first_frame_share must be in [0, 1]");
         }
-        let rest =
-            [self.entropy, self.value_coef, self.init_noise, self.push_max, self.max_height_error, self.max_tilt_error];
+        let rest = [
+            self.entropy,
+            self.value_coef,
+            self.init_noise,
+            self.action_noise,
+            self.push_max,
+            self.max_height_error,
+            self.max_tilt_error,
+        ];
         if rest.iter().any(|v| !(v.is_finite() && *v >= 0.0)) || !self.init_log_std.is_finite() {
             return bad(
-                "entropy, value_coef, init_noise, push_max and the termination limits must be finite and not negative",
+                "entropy, value_coef, init_noise, action_noise, push_max and the termination limits must be finite and not negative",
             );
         }
         if !(self.push_interval[0] > 0.0
@@ -913,6 +926,7 @@ pub fn evaluate(
     }
     let mut eval_cfg = cfg.clone();
     eval_cfg.push_max = if kicks { 0.5 } else { 0.0 };
+    eval_cfg.action_noise = 0.0;
     eval_cfg.push_interval = [1.0, 1.0];
     let mut trackers: Vec<Tracker> = (0..episodes).map(|_| Tracker::new(humanoid)).collect();
     let mut rngs: Vec<StdRng> = (0..episodes).map(|i| StdRng::seed_from_u64(seed.wrapping_add(i as u64))).collect();

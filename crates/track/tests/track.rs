@@ -19,6 +19,30 @@ fn tiny() -> TrackConfig {
     TrackConfig { envs: 4, horizon: 8, iterations: 2, hidden: vec![32, 32], checkpoint_every: 1, ..Default::default() }
 }
 
+/// With `action_noise`, each episode executes the policy's action plus noise of its own
+/// deviation, so the same output takes the humanoid elsewhere; without it, nothing changes.
+#[test]
+fn action_noise_perturbs_what_is_executed_and_only_when_asked() {
+    let (h, clip) = setup();
+    let reference = Reference::new(clip);
+    let qpos_after = |action_noise: f64, seed: u64| {
+        let cfg = TrackConfig { init_noise: 0.0, push_max: 0.0, action_noise, ..tiny() };
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let mut tracker = Tracker::new(&h);
+        tracker.reset(&reference, 10, &cfg, &mut rng).unwrap();
+        for _ in 0..5 {
+            tracker.step(&reference, &[0.0; NUM_DOFS], &cfg, &mut rng);
+        }
+        tracker.env().qpos().to_vec()
+    };
+    let gap = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
+    // No draws without noise: the seed does not matter.
+    assert_eq!(qpos_after(0.0, 1), qpos_after(0.0, 2));
+    let (clean, noisy) = (qpos_after(0.0, 1), qpos_after(0.6, 1));
+    assert!(gap(&clean, &noisy) > 1e-3, "noise of up to 0.6 units moved no joint");
+    assert!(gap(&noisy, &qpos_after(0.6, 2)) > 1e-3, "episodes with other seeds executed the same noise");
+}
+
 #[test]
 fn reference_state_scores_near_the_maximum_and_falling_terminates() {
     let (h, clip) = setup();
