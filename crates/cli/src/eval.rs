@@ -85,6 +85,11 @@ pub enum EvalCommand {
         common: Common,
         #[command(flatten)]
         sweep: Sweep,
+        /// Another schedule instead of the paper's, `run`'s syntax (`seconds:vx,vy,yaw_rate`
+        /// segments joined by `;`, up to 8): a table per segment, asked against achieved, and the
+        /// share of trials that followed it (8 trials).
+        #[arg(long)]
+        schedule: Option<String>,
     },
     /// Random right-hand targets while walking (paper Fig. 4): hand-target distance and the
     /// share of trials whose hand comes within 0.15 m, against guidance scale for each model.
@@ -311,7 +316,10 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     };
     lib(match &cmd {
         EvalCommand::Survival { nfe, seconds, .. } => study.survival(nfe, *seconds),
-        EvalCommand::Joystick { sweep, .. } => study.joystick(&scales(&sweep.scales, true), chosen.nfe),
+        EvalCommand::Joystick { sweep, schedule: None, .. } => study.joystick(&scales(&sweep.scales, true), chosen.nfe),
+        EvalCommand::Joystick { sweep, schedule: Some(text), .. } => {
+            study.joystick_schedule(&scales(&sweep.scales, true), chosen.nfe, &crate::run::schedule(text)?)
+        }
         EvalCommand::Reach { sweep, heights, standing: true, .. } => {
             let heights = if heights.is_empty() { STANDING_HEIGHTS } else { reach_heights(heights)? };
             study.reach_standing(&scales(&sweep.scales, true), chosen.nfe, heights)

@@ -67,15 +67,17 @@ enum Command {
         #[command(flatten)]
         drive: run::DriveArgs,
     },
-    /// The whole job on the preset: clips -> PPO experts -> noisy rollouts -> FM and DDPM
-    /// models -> quick evaluations and report. Stages already done for the same settings are
-    /// skipped; interrupted training resumes.
+    /// The whole job on the preset's `[pipeline]` (`flowmimic config` prints it): clips -> PPO
+    /// experts -> noisy rollouts -> models -> evaluations and report. On the cpu preset: the
+    /// walking corpus, one policy over it from the shipped corpus expert, a Flow Matching
+    /// guidance model and its inverse dynamics, about an hour on 2 cores. Stages already done
+    /// for the same settings are skipped; interrupted training resumes.
     Pipeline {
         /// Output directory of every stage.
         #[arg(short, long, default_value = "runs/pipeline")]
         out: PathBuf,
-        /// Clips to train on (BVH/DeepMimic imports or generated clips); default the generated
-        /// 10 s straight walk. Takes several files (`--clip runs/corpus/*.clip.safetensors`).
+        /// Clips to train on (BVH/DeepMimic imports or generated clips); default those of
+        /// `[pipeline] clips`. Takes several files (`--clip runs/corpus/*.clip.safetensors`).
         #[arg(long, num_args = 1..)]
         clip: Vec<PathBuf>,
         /// Run one stage alone, its inputs already done (`python -m flowmimic.cluster` runs the

@@ -69,6 +69,15 @@ pub struct PipelineConfig {
     pub experts: Experts,
     /// The models, in order: `fm` and `ddpm`, or either.
     pub objectives: Vec<String>,
+    /// With `experts = "one"`: an expert run directory (or policy file) the policy starts from,
+    /// trained `init_iterations` more instead of `track.iterations` from new weights.
+    /// `init_iterations = 0` trains from new weights, so that a file layered on a preset that
+    /// sets `init` can turn it off.
+    pub init: Option<PathBuf>,
+    pub init_iterations: usize,
+    /// A model directory whose `recommended.toml` settings (its comments left out: they measure
+    /// that model) the FM model gets, so that commands driving it without flags use them.
+    pub recommended: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -87,7 +96,14 @@ pub enum Experts {
 
 impl Default for PipelineConfig {
     fn default() -> Self {
-        Self { clips: ClipSource::Walk, experts: Experts::Each, objectives: OBJECTIVES.map(String::from).to_vec() }
+        Self {
+            clips: ClipSource::Walk,
+            experts: Experts::Each,
+            objectives: OBJECTIVES.map(String::from).to_vec(),
+            init: None,
+            init_iterations: 0,
+            recommended: None,
+        }
     }
 }
 
@@ -97,6 +113,11 @@ impl PipelineConfig {
         let once = self.objectives.iter().enumerate().all(|(i, o)| !self.objectives[..i].contains(o));
         if self.objectives.is_empty() || !known || !once {
             return Err(format!("pipeline.objectives is {:?}: give fm, ddpm or both, once each", self.objectives));
+        }
+        if self.init_iterations > 0 && (self.init.is_none() || self.experts != Experts::One) {
+            return Err("pipeline.init_iterations continues the one policy from pipeline.init: \
+                 set experts = \"one\" and init"
+                .into());
         }
         Ok(())
     }
@@ -260,10 +281,26 @@ impl Stages<'_> {
             })
             .collect::<Result<Vec<_>>>()?;
         let dir = self.expert_dir(name);
-        let k = key(&[clips_key.to_string(), json(&self.config.track)]);
-        stage(&format!("expert '{name}'"), &dir, k, || {
-            let start = if dir.join(crate::track::RUN_POLICY).exists() { Start::Resume } else { Start::Fresh };
-            crate::track::train(&self.humanoid, clips, &dir, &self.config.track, start)
+        let p = &self.config.pipeline;
+        let init = p
+            .init
+            .as_deref()
+            .map(crate::paths::resolve)
+            .map(|run| if run.is_dir() { run.join(crate::track::RUN_POLICY) } else { run });
+        let mut track = self.config.track.clone();
+        let mut parts = vec![clips_key.to_string(), json(&track)];
+        if let Some(init) = &init {
+            track.iterations = p.init_iterations;
+            let policy = std::fs::read(init).with_context(|| format!("pipeline.init: reading {}", init.display()))?;
+            parts.extend([format!("{:x}", Sha256::digest(&policy)), track.iterations.to_string()]);
+        }
+        stage(&format!("expert '{name}'"), &dir, key(&parts), || {
+            let start = match init {
+                _ if dir.join(crate::track::RUN_POLICY).exists() => Start::Resume,
+                Some(init) => Start::From(init),
+                None => Start::Fresh,
+            };
+            crate::track::train(&self.humanoid, clips, &dir, &track, start)
         })
     }
 
@@ -319,6 +356,11 @@ impl Stages<'_> {
         let config = self.config;
         let mut parts = vec![data_key.to_string(), json(&config.model), json(&config.train), objective.into()];
         parts.extend(fm.then(|| json(&config.inverse)));
+        let recommended = match (&config.pipeline.recommended, fm) {
+            (Some(file), true) => Some(recommended_settings(&crate::paths::resolve(file))?),
+            _ => None,
+        };
+        parts.extend(recommended.clone());
         let key = key(&parts);
         // A finished model made from other data or settings is the user's: never overwritten.
         if stamp_of(&dir).is_some_and(|k| k != key) {
@@ -334,6 +376,9 @@ impl Stages<'_> {
             if fm {
                 crate::model::fit_inverse(std::slice::from_ref(&data), &dir, &config.inverse)?;
             }
+            if let Some(text) = &recommended {
+                flowmimic_io::write_atomic(&dir.join(flowmimic_control::recommended::FILE), text.as_bytes())?;
+            }
             Ok(())
         })
     }
@@ -347,22 +392,46 @@ impl Stages<'_> {
             let common = || Common::new(models.clone(), eval_dir.clone(), quick);
             eval::run(EvalCommand::Survival { common: common(), nfe: vec![1, 2, 5, 10, 20], seconds: None }, humanoid)?;
             eval::run(EvalCommand::Latency { common: common(), nfe: vec![1, 2, 5, 10, 20], guided: None }, humanoid)?;
-            let fm_only = || Common::new(models[..1].to_vec(), eval_dir.clone(), quick);
-            let sweep = || Sweep { scales: vec![0.0, 3.0, 10.0, 30.0], nfe: Some(5) };
-            eval::run(EvalCommand::Joystick { common: fm_only(), sweep: sweep() }, humanoid)?;
+            // Guidance at the first model's recommended settings when it has them (against
+            // unguided), with every trial of the protocols: they say whether the model steers;
+            // else over a sweep of scales.
+            let tuned = self.config.pipeline.recommended.is_some() && objectives[0] == "fm";
+            let fm_only = || Common::new(models[..1].to_vec(), eval_dir.clone(), quick && !tuned);
+            let sweep = || match tuned {
+                true => Sweep { scales: Vec::new(), nfe: None },
+                false => Sweep { scales: vec![0.0, 3.0, 10.0, 30.0], nfe: Some(5) },
+            };
+            eval::run(EvalCommand::Joystick { common: fm_only(), sweep: sweep(), schedule: None }, humanoid)?;
             eval::run(
                 EvalCommand::Reach {
                     common: fm_only(),
                     sweep: sweep(),
                     heights: eval::REACH_HEIGHTS.to_vec(),
                     standing: false,
-                    approach: Some(false),
+                    approach: (!tuned).then_some(false),
                 },
                 humanoid,
             )?;
             Ok(())
         })
     }
+}
+
+/// The settings of a `recommended.toml` for a model of the pipeline's own: its keys, checked,
+/// under a header that says where they come from (the file's comments measure its own model).
+fn recommended_settings(model: &Path) -> Result<String> {
+    use flowmimic_control::recommended::{FILE, Recommended};
+    Recommended::load(model).context("pipeline.recommended")?;
+    let file = model.join(FILE);
+    let text =
+        std::fs::read_to_string(&file).with_context(|| format!("pipeline.recommended: reading {}", file.display()))?;
+    let keys: Vec<&str> = text.lines().filter(|l| !l.trim_start().starts_with('#')).collect();
+    Ok(format!(
+        "# The settings of {} ([pipeline] recommended), measured on that model, whose recipe this\n\
+         # pipeline follows; what this model does with them: the pipeline's eval/report.md.\n{}\n",
+        file.display(),
+        keys.join("\n").trim()
+    ))
 }
 
 /// An empty dataset in `dir`, whatever was there.

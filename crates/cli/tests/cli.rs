@@ -204,6 +204,12 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     assert_eq!(rows[0][5], "1.000", "{text}");
     let share: f64 = rows[1][5].parse().unwrap();
     assert!((share - rmse(&rows[1]) / rmse(&rows[0])).abs() < 2e-3, "{text}");
+    // Another schedule, segment by segment; more segments than the table holds are refused.
+    let schedule = ["eval", "joystick", "--model", "fm=fm", "--scales", "0", "--trials", "1", "-o", "eval"];
+    let text = ok(dir, &[&schedule[..], &["--schedule", "1:0.5,0,0;1:0,0,0.3"]].concat());
+    assert!(text.contains("| +0.5,+0.0,+0.0 -> ") && text.contains("; +0.0,+0.0,+0.3 -> "), "{text}");
+    let (refused, text) = flowmimic(dir, &[&schedule[..], &["--schedule", &["1:0,0,0"; 9].join(";")]].concat());
+    assert!(!refused && text.contains("1 to 8 segments, not 9"), "{text}");
     // Reaching while standing starts from a standing clip and reports the median time to reach.
     let standing = ["eval", "reach", "--standing", "--model", "fm=fm", "--scales", "0", "--trials", "2", "-o", "eval"];
     let text = ok(dir, &standing);
@@ -444,6 +450,22 @@ fn the_pipeline_runs_every_stage_then_skips_what_is_done() {
     }
     let (success, text) = flowmimic(&dir, &["--config", "one.toml", "pipeline", "-o", "s", "--only", "train:ddpm"]);
     assert!(!success && text.contains("the models of this pipeline are [\"fm\"]"), "{text}");
+    // The one policy started from another run's, trained one iteration more, and a model
+    // directory's recommended settings (without its comments) for the FM model.
+    let init = "init = \"r/experts/all\"\ninit_iterations = 1\nrecommended = \"pretrained/models/fm\"\n";
+    std::fs::write(dir.join("init.toml"), format!("[pipeline]\nexperts = \"one\"\nobjectives = [\"fm\"]\n{init}"))
+        .unwrap();
+    let text = ok(&dir, &[&["--config", "init.toml", "pipeline", "-o", "i"], &both[..]].concat());
+    assert!(text.contains("starting from the policy of") && text.contains("r/experts/all"), "{text}");
+    let log = std::fs::read_to_string(dir.join("i/experts/all/log.csv")).unwrap();
+    assert_eq!(log.lines().count(), 2, "one iteration more: {log}");
+    let recommended = std::fs::read_to_string(dir.join("i/model/fm/recommended.toml")).unwrap();
+    assert!(recommended.contains("[joystick]") && recommended.contains("adaptive = 1.5"), "{recommended}");
+    assert!(!recommended.contains("m/s"), "the shipped model's measurements were copied: {recommended}");
+    assert!(text.contains("w 50 (model)") || text.contains("| 50 |"), "not evaluated at its settings: {text}");
+    std::fs::write(dir.join("bad.toml"), "[pipeline]\ninit_iterations = 2\n").unwrap();
+    let (success, text) = flowmimic(&dir, &["--config", "bad.toml", "pipeline", "-o", "b"]);
+    assert!(!success && text.contains("pipeline.init_iterations"), "{text}");
     // The walking corpus, when no clip is given.
     std::fs::write(dir.join("corpus.toml"), "[pipeline]\nclips = \"walking-corpus\"\n").unwrap();
     ok(&dir, &["--config", "corpus.toml", "pipeline", "-o", "c", "--only", "clips"]);

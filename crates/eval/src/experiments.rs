@@ -57,6 +57,20 @@ fn time_to_arrive(s: &Summary) -> String {
     if seconds.is_nan() { "—".to_string() } else { format!("{seconds:.1}") }
 }
 
+/// The most segments `eval joystick --schedule` reports, and each segment's columns: the mean
+/// achieved forward and sideways speed and yaw rate, and followed (1) or not (0).
+pub const MAX_SEGMENTS: usize = 8;
+const SEGMENT_COLUMNS: [[&str; 4]; MAX_SEGMENTS] = [
+    ["s1_vx", "s1_vy", "s1_yaw_rate", "s1_followed"],
+    ["s2_vx", "s2_vy", "s2_yaw_rate", "s2_followed"],
+    ["s3_vx", "s3_vy", "s3_yaw_rate", "s3_followed"],
+    ["s4_vx", "s4_vy", "s4_yaw_rate", "s4_followed"],
+    ["s5_vx", "s5_vy", "s5_yaw_rate", "s5_followed"],
+    ["s6_vx", "s6_vy", "s6_yaw_rate", "s6_followed"],
+    ["s7_vx", "s7_vy", "s7_yaw_rate", "s7_followed"],
+    ["s8_vx", "s8_vy", "s8_yaw_rate", "s8_followed"],
+];
+
 /// `1.0` for true, so falls and successes average into rates.
 fn rate(b: bool) -> f64 {
     f64::from(u8::from(b))
@@ -137,7 +151,7 @@ impl Study<'_> {
             name: "survival",
             settings,
             title: "Survival against NFE (paper Fig. 2)",
-            columns: &["steps"],
+            columns: vec!["steps"],
             plot: "steps",
             x_label: "NFE",
             y_label: "control steps survived",
@@ -183,7 +197,7 @@ impl Study<'_> {
             // Points stored before the joystick's heading was held measured another cost.
             settings: self.settings("heading held"),
             title: "Joystick tracking against guidance (paper Fig. 3)",
-            columns: &[
+            columns: vec![
                 "velocity_rmse",
                 "yaw_rate_rmse",
                 "forward_vx",
@@ -220,8 +234,8 @@ impl Study<'_> {
             &exp,
             (scales, nfe, trials, 360),
             |bench, point, report| {
-                let r = protocols::joystick(bench, point, trials, report)?;
                 let asked = Task::joystick_eval().joystick;
+                let r = protocols::joystick(bench, point, &asked, trials, report)?;
                 Ok(r.iter()
                     .map(|t| {
                         let [fwd, back, left, right] =
@@ -270,6 +284,81 @@ impl Study<'_> {
         )
     }
 
+    /// Any joystick schedule of up to [`MAX_SEGMENTS`] segments, against guidance scale: per
+    /// segment, the mean achieved speeds and yaw rate and the share of trials that followed it.
+    pub fn joystick_schedule(&self, scales: &[f32], nfe: usize, schedule: &[JoystickSegment]) -> Result<()> {
+        if schedule.is_empty() || schedule.len() > MAX_SEGMENTS {
+            return Err(format!("a schedule of 1 to {MAX_SEGMENTS} segments, not {}", schedule.len()).into());
+        }
+        let trials = self.trials(8, 2);
+        let text: Vec<String> =
+            schedule.iter().map(|s| format!("{}:{},{},{}", s.seconds, s.vx, s.vy, s.yaw_rate)).collect();
+        let text = text.join(";");
+        let mut columns = vec!["velocity_rmse", "yaw_rate_rmse", "fell"];
+        columns.extend(SEGMENT_COLUMNS[..schedule.len()].iter().flatten());
+        let exp = Experiment {
+            name: "joystick-schedule",
+            // The schedule is part of what was measured: another one is another experiment.
+            settings: self.settings(&format!("schedule {text}")),
+            title: "Joystick schedule, segment by segment",
+            columns,
+            plot: "velocity_rmse",
+            x_label: "guidance scale w",
+            y_label: "velocity RMSE (m/s)",
+            header: "| model | H | w | velocity RMSE (m/s) | per segment: asked -> achieved forward, sideways (m/s), yaw rate (rad/s), followed | falls |\n|---|---|---|---|---|---|",
+        };
+        let notes = format!(
+            "Schedule `{text}` (`seconds:vx,vy,yaw_rate` segments); RMSE between commanded and achieved planar root \
+             velocity over the steps before any fall; NFE {nfe}, {trials} trials. Per segment, the mean achieved forward and \
+             sideways speed and yaw rate from {SEGMENT_SETTLE} s after its start, before any fall, and the share of trials \
+             that followed it: within {FOLLOWED_SPEED} m/s and {FOLLOWED_YAW_RATE} rad/s of the command, with no fall \
+             (7 of 8 is 88%)."
+        );
+        self.guided_sweep(
+            &exp,
+            (scales, nfe, trials, 360),
+            |bench, point, report| {
+                let r = protocols::joystick(bench, point, schedule, trials, report)?;
+                Ok(r.iter()
+                    .map(|t| {
+                        let per = schedule.iter().zip(&t.segments).flat_map(|(s, &a)| {
+                            [a[0], a[1], a[2], rate(!t.fell && followed([s.vx, s.vy, s.yaw_rate], a))]
+                        });
+                        [t.velocity_rmse, t.yaw_rate_rmse, rate(t.fell)].into_iter().chain(per).collect()
+                    })
+                    .collect())
+            },
+            |m, s, _| {
+                let segments: Vec<String> = schedule
+                    .iter()
+                    .zip(SEGMENT_COLUMNS)
+                    .map(|(seg, [vx, vy, yaw, ok])| {
+                        format!(
+                            "{:+.1},{:+.1},{:+.1} -> {:+.2},{:+.2},{:+.2} {:.0}%",
+                            seg.vx,
+                            seg.vy,
+                            seg.yaw_rate,
+                            s.mean[vx],
+                            s.mean[vy],
+                            s.mean[yaw],
+                            100.0 * s.mean[ok]
+                        )
+                    })
+                    .collect();
+                format!(
+                    "| {} | {} | {} | {:.3} | {} | {:.0}% |",
+                    m.label,
+                    s.horizon,
+                    s.scale,
+                    s.mean["velocity_rmse"],
+                    segments.join("; "),
+                    100.0 * s.mean["fell"]
+                )
+            },
+            &notes,
+        )
+    }
+
     /// Random right-hand targets while walking, against guidance scale (paper Fig. 4).
     pub fn reach(&self, scales: &[f32], nfe: usize, setup: ReachSetup) -> Result<()> {
         let trials = self.trials(20, 4);
@@ -278,7 +367,7 @@ impl Study<'_> {
             name: "reach",
             settings: self.settings(&format!("heights {heights}; approach {}", setup.approach)),
             title: "Hand reaching against guidance (paper Fig. 4)",
-            columns: &["mean", "rms", "min", "reached", "fell"],
+            columns: vec!["mean", "rms", "min", "reached", "fell"],
             plot: "mean",
             x_label: "guidance scale w",
             y_label: "hand-target distance (m)",
@@ -323,7 +412,7 @@ impl Study<'_> {
             name: "reach-standing",
             settings: self.settings(&format!("heights {low}-{high} m")),
             title: "Reaching while standing",
-            columns: &["closest", "reached", "seconds", "fell"],
+            columns: vec!["closest", "reached", "seconds", "fell"],
             plot: "reached",
             x_label: "guidance scale w",
             y_label: "share within 0.10 m",
@@ -372,7 +461,7 @@ impl Study<'_> {
             name: "waypoint",
             settings: self.settings(""),
             title: "Waypoint navigation",
-            columns: &["arrived", "closest", "seconds", "last", "fell"],
+            columns: vec!["arrived", "closest", "seconds", "last", "fell"],
             plot: "arrived",
             x_label: "guidance scale w",
             y_label: "arrival rate",
@@ -420,7 +509,7 @@ impl Study<'_> {
             settings: self
                 .settings(&format!("{world}; blind {}; clear {FOREST_CLEAR}; width {FOREST_WIDTH}", setup.blind)),
             title: "Through a forest to a goal",
-            columns: &["success", "arrived", "contacts", "fell", "seconds", "obstacles"],
+            columns: vec!["success", "arrived", "contacts", "fell", "seconds", "obstacles"],
             plot: "success",
             x_label: "guidance scale w",
             y_label: "success rate",
@@ -502,7 +591,7 @@ impl Study<'_> {
             name: "compose",
             settings: self.settings(&format!("target height {height}; approach {}", setup.approach)),
             title: "Composition: waypoint and reach",
-            columns: &["success", "pelvis_min", "hand_min", "fell"],
+            columns: vec!["success", "pelvis_min", "hand_min", "fell"],
             plot: "success",
             x_label: "guidance scale w",
             y_label: "success rate",
@@ -550,7 +639,7 @@ impl Study<'_> {
             name: "quality",
             settings: self.settings(&format!("dataset {}; quick {}", Dataset::open(dataset)?.shards_key(), self.quick)),
             title: "Motion quality (Fréchet distance to the data)",
-            columns: &["frechet"],
+            columns: vec!["frechet"],
             plot: "frechet",
             x_label: "NFE",
             y_label: "Fréchet distance",
@@ -593,7 +682,7 @@ impl Study<'_> {
             } else {
                 "Latency per control step (batch 1)"
             },
-            columns: &["model_ms", "physics_ms", "total_ms"],
+            columns: vec!["model_ms", "physics_ms", "total_ms"],
             plot: "total_ms",
             x_label: "NFE",
             y_label: "milliseconds",

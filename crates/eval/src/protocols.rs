@@ -134,14 +134,16 @@ pub struct JoystickTrial {
 /// Seconds of each joystick segment left out of its achieved velocity: the change of gait.
 pub const SEGMENT_SETTLE: f64 = 1.0;
 
-/// Joystick (paper Fig. 3): forward, backward, turn left, turn right, 3 s each.
+/// Joystick: every trial follows `schedule` (the paper's, Fig. 3: forward, backward, turn left,
+/// turn right, 3 s each, is [`Task::joystick_eval`]'s).
 pub fn joystick(
     bench: &Bench,
     point: Point,
+    schedule: &[JoystickSegment],
     trials: usize,
     on_step: impl FnMut(&StepReport),
 ) -> Result<Vec<JoystickTrial>, ControlError> {
-    let task = Task::joystick_eval();
+    let task = Task { joystick: schedule.to_vec(), ..Task::walk() };
     let seconds = task.schedule_seconds();
     let r = bench.run("joystick", vec![task; trials], point, seconds, false, on_step)?;
     Ok((0..trials).map(|e| joystick_trial(&r, e)).collect())

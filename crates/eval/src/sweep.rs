@@ -304,7 +304,7 @@ pub struct Experiment {
     /// What else determines the results (episode length, start clip, reference data).
     pub settings: String,
     pub title: &'static str,
-    pub columns: &'static [&'static str],
+    pub columns: Vec<&'static str>,
     pub plot: &'static str,
     pub x_label: &'static str,
     pub y_label: &'static str,
@@ -323,7 +323,7 @@ pub fn sweep(
     mut run: impl FnMut(&EvalModel, Point) -> Rows,
     row: impl Fn(&EvalModel, &Summary, Option<&Summary>) -> String,
 ) -> Result<(Vec<Summary>, String)> {
-    let mut stored = Store::open(out.join(format!("{}.csv", exp.name)), exp.columns)?;
+    let mut stored = Store::open(out.join(format!("{}.csv", exp.name)), &exp.columns)?;
     let x_of = |p: &Point| if by_nfe { p.nfe as f64 } else { f64::from(p.scale) };
     let mut chart = Chart::new(exp.title, exp.x_label, exp.y_label);
     let mut falls = Chart::new(&format!("{}: falls", exp.title), exp.x_label, "fall rate");
@@ -337,7 +337,7 @@ pub fn sweep(
         for &point in points {
             eprintln!("{}: {} NFE {} w {} ({trials} trials)", exp.name, m.label, point.nfe, point.scale);
             let rows = stored.point(m, &exp.settings, point, trials, || run(m, point))?;
-            let s = summary(m, point, &rows, exp.columns);
+            let s = summary(m, point, &rows, &exp.columns);
             let (mean, std) = (s.mean[exp.plot], s.std[exp.plot]);
             line.push((x_of(&point), mean));
             band.push((x_of(&point), mean - std, mean + std));
