@@ -99,7 +99,8 @@ enum Command {
     /// PPO tracking experts: train on a clip, evaluate tracking quality.
     #[command(subcommand)]
     Track(track::TrackCommand),
-    /// Roll an expert out with action noise (sigma 0.12/0.16/0.24/0.36 on 16/12/6/6 envs) and
+    /// Roll an expert out with action noise (`collect.noise`: on the cpu preset sigma 0.12 and
+    /// 0.16 on 20 envs each, the shipped fm's; the paper's 0.12/0.16/0.24/0.36 on 16/12/6/6) and
     /// add the noisy states with the clean expert actions to a dataset.
     Collect {
         /// Expert runs (directories written by `flowmimic track train`, holding
