@@ -7,7 +7,8 @@ PYDEPS := third_party/python
 
 .PHONY: run demo test lint bench mujoco chromium python
 
-# The whole pipeline on the cpu preset: clips -> experts -> rollouts -> FM and DDPM -> evaluation.
+# The whole pipeline on the cpu preset: the walking corpus -> one PPO policy -> rollouts -> the FM
+# guidance model and its inverse dynamics -> evaluation (about an hour on 2 cores).
 run: $(MUJOCO)
 	cargo run --release -- pipeline
 

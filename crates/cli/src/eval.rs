@@ -86,8 +86,9 @@ pub enum EvalCommand {
         #[command(flatten)]
         sweep: Sweep,
         /// Another schedule instead of the paper's, `run`'s syntax (`seconds:vx,vy,yaw_rate`
-        /// segments joined by `;`, up to 8): a table per segment, asked against achieved, and the
-        /// share of trials that followed it (8 trials).
+        /// segments joined by `;`, up to 8; quote it in a shell, and write `--schedule=-3:...`
+        /// for a first value below 0): a row per segment, asked against achieved, and the share
+        /// of trials that followed it (within 0.25 m/s and 0.25 rad/s, no fall; 8 trials).
         #[arg(long)]
         schedule: Option<String>,
     },
@@ -110,7 +111,7 @@ pub enum EvalCommand {
         standing: bool,
         /// Walk up to each target (a pursuit command toward a point beside it that brings the
         /// hand there) instead of walking on with the hand's cost alone (true without a value;
-        /// default: the first model's recommended, else false).
+        /// default: the first model's recommended, else false; not with --standing).
         #[arg(long, num_args = 0..=1, default_missing_value = "true")]
         approach: Option<bool>,
     },

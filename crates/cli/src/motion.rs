@@ -73,7 +73,8 @@ pub enum MotionCommand {
         /// Seed of the random walks.
         #[arg(long, default_value_t = 0)]
         seed: u64,
-        /// Clip name (default walk, or wander_<seed>; with --count, names get a number).
+        /// Clip name (default walk, reach with --reach, or wander_<seed>; with --count, names get a
+        /// number).
         #[arg(long)]
         name: Option<String>,
         /// Output directory.

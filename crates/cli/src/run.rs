@@ -254,11 +254,18 @@ fn numbers(text: &str, n: usize, what: &str) -> Result<Vec<f64>> {
 
 pub(crate) fn schedule(text: &str) -> Result<Vec<JoystickSegment>> {
     text.split(';')
-        .map(|seg| {
-            let (secs, v) =
-                seg.split_once(':').with_context(|| format!("schedule segment '{seg}': use seconds:vx,vy,yaw_rate"))?;
-            let seconds = numbers(secs, 1, "schedule duration")?[0];
-            let v = numbers(v, 3, "schedule velocity")?;
+        .enumerate()
+        .map(|(i, seg)| {
+            let what = format!("schedule segment {} '{seg}'", i + 1);
+            if seg.trim().is_empty() {
+                bail!("{what} is empty (a ';' too many?): use seconds:vx,vy,yaw_rate");
+            }
+            let (secs, v) = seg.split_once(':').with_context(|| format!("{what}: use seconds:vx,vy,yaw_rate"))?;
+            let seconds = numbers(secs, 1, &format!("{what}: duration"))?[0];
+            if seconds <= 0.0 {
+                bail!("{what}: the duration must be above 0 s, not {seconds}");
+            }
+            let v = numbers(v, 3, &format!("{what}: velocity"))?;
             Ok(JoystickSegment { seconds, vx: v[0], vy: v[1], yaw_rate: v[2] })
         })
         .collect()

@@ -245,7 +245,17 @@ pub fn finish(
     )?;
     let report = out.join("report.md");
     let mut text = flowmimic_io::read_to_string(&report).unwrap_or_else(|_| "# flowmimic evaluation report\n".into());
-    let args: Vec<String> = std::env::args().skip(1).collect();
+    // Quoted where a shell would split or read them, so the command pastes back as it ran.
+    let args: Vec<String> = std::env::args()
+        .skip(1)
+        .map(|a| {
+            if a.contains([' ', ';', '|', '&', '*', '(', ')', '\'']) {
+                format!("'{}'", a.replace('\'', "'\\''"))
+            } else {
+                a
+            }
+        })
+        .collect();
     let described: Vec<String> = models
         .iter()
         .map(|m| {
