@@ -282,9 +282,11 @@ impl Stages<'_> {
             .collect::<Result<Vec<_>>>()?;
         let dir = self.expert_dir(name);
         let p = &self.config.pipeline;
+        // `init_iterations = 0` turns a preset's `init` off: the policy from new weights.
         let init = p
             .init
             .as_deref()
+            .filter(|_| p.init_iterations > 0)
             .map(crate::paths::resolve)
             .map(|run| if run.is_dir() { run.join(crate::track::RUN_POLICY) } else { run });
         let mut track = self.config.track.clone();

@@ -463,6 +463,18 @@ fn the_pipeline_runs_every_stage_then_skips_what_is_done() {
     assert!(recommended.contains("[joystick]") && recommended.contains("adaptive = 1.5"), "{recommended}");
     assert!(!recommended.contains("m/s"), "the shipped model's measurements were copied: {recommended}");
     assert!(text.contains("w 50 (model)") || text.contains("| 50 |"), "not evaluated at its settings: {text}");
+    // A layer that sets init_iterations = 0 (as configs/recipe-fm.toml over the cpu preset)
+    // trains the policy from new weights, whatever init says.
+    std::fs::write(dir.join("scratch.toml"), "[pipeline]\ninit_iterations = 0\n").unwrap();
+    let scratch = |rest: &[&str]| {
+        let layers = ["--config", "init.toml", "--config", "scratch.toml", "pipeline", "-o", "n"];
+        ok(&dir, &[&layers[..], rest].concat())
+    };
+    scratch(&[&["--only", "clips"], &both[..]].concat());
+    let text = scratch(&["--only", "expert:all"]);
+    assert!(!text.contains("starting from the policy of"), "{text}");
+    let log = std::fs::read_to_string(dir.join("n/experts/all/log.csv")).unwrap();
+    assert!(log.lines().count() > 2, "the preset's iterations from new weights: {log}");
     std::fs::write(dir.join("bad.toml"), "[pipeline]\ninit_iterations = 2\n").unwrap();
     let (success, text) = flowmimic(&dir, &["--config", "bad.toml", "pipeline", "-o", "b"]);
     assert!(!success && text.contains("pipeline.init_iterations"), "{text}");
