@@ -196,6 +196,13 @@ pub struct ReachTrial {
 }
 
 impl ReachTrial {
+    /// The distances of `hands` (one position a step) from `target`.
+    fn of(hands: &[[f64; 3]], target: [f64; 3], fell: bool) -> Self {
+        let (mean, rms) = reach_errors(hands, &vec![target; hands.len()]);
+        let min = hands.iter().map(|h| distance(h, &target)).fold(f64::INFINITY, f64::min);
+        Self { mean, rms, min, fell }
+    }
+
     /// The hand came within [`HAND_REACHED`] of the target at some step.
     pub fn reached(&self) -> bool {
         self.min <= HAND_REACHED
@@ -300,11 +307,11 @@ pub fn reach_standing(
     let r = bench.run("reach-standing", tasks, point, 4.0, false, on_step)?;
     Ok((0..trials)
         .map(|e| {
-            let reach = reach_trial(&r, e).expect("reach task");
-            let target = r.info.tasks[e].reach.expect("reach task").1;
-            let first =
-                (1..=r.survived[e]).find(|&k| distance(&r.body(e, k, body::R_HAND), &target) <= STANDING_REACHED);
-            let seconds_to_reach = first.map_or(f64::INFINITY, |k| k as f64 / CONTROL_HZ);
+            let (hands, target) = hand_and_target(&r, e).expect("reach task");
+            let reach = ReachTrial::of(&hands, target, r.fell(e));
+            // Step k + 1 is the first within reach (the hands start at step 1).
+            let first = hands.iter().position(|h| distance(h, &target) <= STANDING_REACHED);
+            let seconds_to_reach = first.map_or(f64::INFINITY, |k| (k + 1) as f64 / CONTROL_HZ);
             StandingReachTrial { reach, seconds_to_reach }
         })
         .collect())
@@ -313,15 +320,15 @@ pub fn reach_standing(
 /// The hand-to-target distances of one environment of a rollout whose task reaches (`None`
 /// for a task without a hand target).
 pub fn reach_trial(r: &Rollout, e: usize) -> Option<ReachTrial> {
+    let (hands, target) = hand_and_target(r, e)?;
+    Some(ReachTrial::of(&hands, target, r.fell(e)))
+}
+
+/// Where the asked hand of environment `e` is at each step 1..=survived, and its target
+/// (`None` for a task without a hand target).
+fn hand_and_target(r: &Rollout, e: usize) -> Option<(Vec<[f64; 3]>, [f64; 3])> {
     let (hand, target) = r.info.tasks[e].reach?;
-    let b = match hand {
-        Hand::Left => body::L_HAND,
-        Hand::Right => body::R_HAND,
-    };
-    let hands: Vec<[f64; 3]> = (1..=r.survived[e]).map(|k| r.body(e, k, b)).collect();
-    let (mean, rms) = reach_errors(&hands, &vec![target; hands.len()]);
-    let min = hands.iter().map(|h| distance(h, &target)).fold(f64::INFINITY, f64::min);
-    Some(ReachTrial { mean, rms, min, fell: r.fell(e) })
+    Some(((1..=r.survived[e]).map(|k| r.body(e, k, hand.body())).collect(), target))
 }
 
 fn distance(a: &[f64], b: &[f64]) -> f64 {
