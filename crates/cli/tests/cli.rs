@@ -309,6 +309,23 @@ fn every_shipped_model_exports_and_samples_as_flowmimic_in_onnx_runtime() {
 }
 
 #[test]
+fn every_config_layer_in_configs_is_valid() {
+    // The recipes in configs/ are what the docs' commands layer over a preset: a key renamed in
+    // the code must not leave one of them refused.
+    let dir = workdir("configs");
+    let configs = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../configs");
+    let mut checked = 0;
+    for entry in std::fs::read_dir(&configs).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            ok(&dir, &["--config", path.to_str().unwrap(), "config"]);
+            checked += 1;
+        }
+    }
+    assert!(checked >= 10, "only {checked} configs found in {}", configs.display());
+}
+
+#[test]
 fn bad_input_is_a_clear_error_not_a_crash() {
     let dir = workdir("bad-input");
     std::fs::write(dir.join("bad.bvh"), "HIERARCHY\nROOT Hips\n{\n OFFSET 0 0\n").unwrap();
