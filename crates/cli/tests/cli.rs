@@ -323,6 +323,7 @@ fn every_config_layer_in_configs_is_valid() {
         }
     }
     assert!(checked >= 10, "only {checked} configs found in {}", configs.display());
+    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]
