@@ -1,7 +1,7 @@
 //! Dense layers, row-major: the forward product and its backward, shared by the MLP and the
 //! Transformer. The forward product and the input gradient run on the direct kernels of
-//! `small` where the CPU has them, the weight gradient (a sum over rows) on `matrixmultiply`'s
-//! SGEMM.
+//! `small` where the CPU has them (on AVX-512, for all but many-row products), the weight
+//! gradient (a sum over rows) on `matrixmultiply`'s SGEMM.
 
 use rayon::prelude::*;
 
@@ -124,7 +124,7 @@ pub(crate) fn backward(
 pub(crate) fn input_grad(dy: &[f32], rows: usize, w: &[f32], inputs: usize) -> Vec<f32> {
     let outputs = w.len() / inputs;
     let mut dx = vec![0.0; rows * inputs];
-    if small::available() {
+    if small::available() && !small::sgemm_is_faster(rows) {
         let work = rows * inputs * outputs;
         by_rows((dy, outputs), (&mut dx, inputs), rows, work, |dy, n, dx| small::input_grad(dy, n, w, inputs, dx));
     } else {
@@ -167,9 +167,9 @@ mod tests {
     }
 
     #[test]
-    fn a_forward_product_is_the_same_on_either_side_of_the_sgemm_threshold() {
-        // Wherever SGEMM takes the many-row products (AVX-512), it must agree with the direct
-        // kernels that take them elsewhere.
+    fn a_product_is_the_same_on_either_side_of_the_sgemm_threshold() {
+        // Wherever SGEMM takes the many-row products (AVX-512), forward and input gradient, it
+        // must agree with the direct kernels that take them elsewhere.
         if !small::available() {
             return;
         }
@@ -182,8 +182,12 @@ mod tests {
         );
         let mut direct = vec![0.0; rows * outputs];
         small::forward(&x, rows, &w, &b, inputs, &mut direct);
-        let y = forward(&x, rows, &w, &b, inputs);
-        assert!(y.iter().zip(&direct).all(|(a, b)| (a - b).abs() <= 1e-5 * (1.0 + b.abs())));
+        let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(a, b)| (a - b).abs() <= 1e-5 * (1.0 + b.abs()));
+        assert!(close(&forward(&x, rows, &w, &b, inputs), &direct));
+        let dy: Vec<f32> = (0..rows * outputs).map(|i| value(i + 2)).collect();
+        let mut direct = vec![0.0; rows * inputs];
+        small::input_grad(&dy, rows, &w, inputs, &mut direct);
+        assert!(close(&input_grad(&dy, rows, &w, inputs), &direct));
     }
 
     #[test]

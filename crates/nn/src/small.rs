@@ -19,12 +19,15 @@ pub(crate) fn available() -> bool {
     }
 }
 
-/// Rows from which SGEMM's forward product beats these kernels on a CPU with AVX-512, where
-/// `matrixmultiply` runs 16-lane kernels against these 8: a PPO minibatch of 1,408 rows through
-/// the 295-256-128-64 networks took 6.9-7.3 ms against 8.6-8.9 (README, Benchmarks).
+/// Rows from which SGEMM beats these kernels on a CPU with AVX-512, where `matrixmultiply` runs
+/// 16-lane kernels against these 8: a PPO minibatch of 1,408 rows through the 295-256-128-64
+/// networks took 6.9-7.3 ms against 8.6-8.9 forward, and a training step of the cpu preset's
+/// Transformer (5,376 rows) 266-274 ms against 280-292 with the input gradient on SGEMM too
+/// (docs/benchmarks.md).
 const SGEMM_ROWS_AVX512: usize = 1024;
 
-/// Whether the forward product of `rows` rows is faster on SGEMM than on these kernels.
+/// Whether a product of `rows` rows (forward or input gradient) is faster on SGEMM than on
+/// these kernels.
 pub(crate) fn sgemm_is_faster(rows: usize) -> bool {
     #[cfg(target_arch = "x86_64")]
     {

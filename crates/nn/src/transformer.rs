@@ -212,52 +212,97 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
     acc.iter().sum::<f32>() + tail
 }
 
+/// Elements in one block of a row-wise pass (layer norm, GELU): a training batch splits into
+/// many, which rayon's threads share; a batch-1 control step fits in one and stays on the
+/// calling thread, which a hand-off to the pool would only delay. The blocks do not depend on
+/// the number of threads, so neither do the sums over them.
+const BLOCK_ELEMENTS: usize = 1 << 15;
+
+/// Rows per block of a pass over `rows` rows of `d` elements.
+fn block_rows(rows: usize, d: usize) -> usize {
+    (BLOCK_ELEMENTS / d).clamp(1, rows.max(1))
+}
+
+/// Runs `f` on every block (disjoint chunks of the pass's buffers), on rayon's threads when
+/// there is more than one. The results come back in block order, so that a sum over them is the
+/// same whatever the threads did.
+fn for_blocks<I, T>(blocks: I, f: impl Fn(I::Item) -> T + Sync + Send) -> Vec<T>
+where
+    I: ExactSizeIterator + Send,
+    I::Item: Send,
+    T: Send,
+{
+    if blocks.len() <= 1 {
+        return blocks.map(f).collect();
+    }
+    let mut results: Vec<(usize, T)> = blocks.enumerate().par_bridge().map(|(i, b)| (i, f(b))).collect();
+    results.sort_by_key(|(i, _)| *i);
+    results.into_iter().map(|(_, t)| t).collect()
+}
+
+/// `f(y, x)` for every element of `y` and `x` (rows of `d`).
+fn apply_rows(y: &mut [f32], x: &[f32], d: usize, f: impl Fn(&mut f32, f32) + Sync + Send) {
+    let chunk = block_rows(x.len() / d, d) * d;
+    for_blocks(y.chunks_mut(chunk).zip(x.chunks(chunk)), |(y, x)| y.iter_mut().zip(x).for_each(|(y, &x)| f(y, x)));
+}
+
 fn layer_norm(x: &[f32], d: usize, gamma: &[f32], beta: &[f32]) -> (Vec<f32>, Norm) {
     let rows = x.len() / d;
     let mut xhat = vec![0.0; x.len()];
     let mut rstd = vec![0.0; rows];
     let mut y = vec![0.0; x.len()];
-    for r in 0..rows {
-        let row = &x[r * d..(r + 1) * d];
-        let mean = row.iter().sum::<f32>() / d as f32;
-        let var = row.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / d as f32;
-        rstd[r] = 1.0 / (var + 1e-5).sqrt();
-        for j in 0..d {
-            let h = (row[j] - mean) * rstd[r];
-            xhat[r * d + j] = h;
-            y[r * d + j] = gamma[j] * h + beta[j];
+    let block = block_rows(rows, d);
+    let blocks = x.chunks(block * d).zip(xhat.chunks_mut(block * d)).zip(y.chunks_mut(block * d));
+    for_blocks(blocks.zip(rstd.chunks_mut(block)), |(((x, xhat), y), rstd)| {
+        for (r, rstd) in rstd.iter_mut().enumerate() {
+            let row = &x[r * d..(r + 1) * d];
+            let mean = row.iter().sum::<f32>() / d as f32;
+            let var = row.iter().map(|v| (v - mean) * (v - mean)).sum::<f32>() / d as f32;
+            *rstd = 1.0 / (var + 1e-5).sqrt();
+            for j in 0..d {
+                let h = (row[j] - mean) * *rstd;
+                xhat[r * d + j] = h;
+                y[r * d + j] = gamma[j] * h + beta[j];
+            }
         }
-    }
+    });
     (y, Norm { xhat, rstd })
 }
 
 /// Accumulates the norm's parameter gradients (gamma, beta) when given and returns `dx`.
-fn layer_norm_backward(
-    dy: &[f32],
-    norm: &Norm,
-    gamma: &[f32],
-    mut params: Option<(&mut [f32], &mut [f32])>,
-) -> Vec<f32> {
+fn layer_norm_backward(dy: &[f32], norm: &Norm, gamma: &[f32], params: Option<(&mut [f32], &mut [f32])>) -> Vec<f32> {
     let d = gamma.len();
     let mut dx = vec![0.0; dy.len()];
-    for r in 0..norm.rstd.len() {
-        let (dyr, xh) = (&dy[r * d..(r + 1) * d], &norm.xhat[r * d..(r + 1) * d]);
-        let (mut mean_g, mut mean_gx) = (0.0, 0.0);
-        for j in 0..d {
-            let g = dyr[j] * gamma[j];
-            mean_g += g;
-            mean_gx += g * xh[j];
-        }
-        if let Some((gg, gb)) = params.as_mut() {
+    let block = block_rows(norm.rstd.len(), d);
+    let blocks = dy.chunks(block * d).zip(norm.xhat.chunks(block * d)).zip(norm.rstd.chunks(block));
+    let param_len = if params.is_some() { d } else { 0 };
+    // Each block returns its rows' share of the parameter gradients, added below in block order.
+    let shares = for_blocks(blocks.zip(dx.chunks_mut(block * d)), |(((dy, xhat), rstd), dx)| {
+        let (mut gg, mut gb) = (vec![0.0; param_len], vec![0.0; param_len]);
+        for (r, &rstd) in rstd.iter().enumerate() {
+            let (dyr, xh) = (&dy[r * d..(r + 1) * d], &xhat[r * d..(r + 1) * d]);
+            let (mut mean_g, mut mean_gx) = (0.0, 0.0);
             for j in 0..d {
+                let g = dyr[j] * gamma[j];
+                mean_g += g;
+                mean_gx += g * xh[j];
+            }
+            for j in 0..param_len {
                 gg[j] += dyr[j] * xh[j];
                 gb[j] += dyr[j];
             }
+            mean_g /= d as f32;
+            mean_gx /= d as f32;
+            for j in 0..d {
+                dx[r * d + j] = rstd * (dyr[j] * gamma[j] - mean_g - xh[j] * mean_gx);
+            }
         }
-        mean_g /= d as f32;
-        mean_gx /= d as f32;
-        for j in 0..d {
-            dx[r * d + j] = norm.rstd[r] * (dyr[j] * gamma[j] - mean_g - xh[j] * mean_gx);
+        (gg, gb)
+    });
+    if let Some((pg, pb)) = params {
+        for (gg, gb) in shares {
+            pg.iter_mut().zip(gg).for_each(|(p, g)| *p += g);
+            pb.iter_mut().zip(gb).for_each(|(p, g)| *p += g);
         }
     }
     dx
@@ -356,7 +401,8 @@ impl Transformer {
             h.iter_mut().zip(&out).for_each(|(h, o)| *h += o);
             let (bn, norm2) = layer_norm(&h, d, self.p(&b.ln2.0), self.p(&b.ln2.1));
             let pre_gelu = dense::forward(&bn, rows, self.p(&b.ff1.0), self.p(&b.ff1.1), d);
-            let hidden: Vec<f32> = pre_gelu.iter().map(|&v| gelu(v)).collect();
+            let mut hidden = vec![0.0; pre_gelu.len()];
+            apply_rows(&mut hidden, &pre_gelu, c.d_ff, |h, u| *h = gelu(u));
             let out = dense::forward(&hidden, rows, self.p(&b.ff2.0), self.p(&b.ff2.1), c.d_ff);
             h.iter_mut().zip(&out).for_each(|(h, o)| *h += o);
             blocks.push(BlockTape { norm1, a, qkv, probs, attended, norm2, b: bn, pre_gelu, hidden });
@@ -475,7 +521,7 @@ impl Transformer {
         for (b, t) in s.blocks.iter().zip(&tape.blocks).rev() {
             // Feed-forward branch.
             let mut du = self.dense_backward(&b.ff2, &t.hidden, &dh, rows, grads.as_deref_mut(), true).expect("dx");
-            du.iter_mut().zip(&t.pre_gelu).for_each(|(g, &u)| *g *= gelu_grad(u));
+            apply_rows(&mut du, &t.pre_gelu, c.d_ff, |g, u| *g *= gelu_grad(u));
             let dbn = self.dense_backward(&b.ff1, &t.b, &du, rows, grads.as_deref_mut(), true).expect("dx");
             let dx = self.norm_backward(&b.ln2, &dbn, &t.norm2, grads.as_deref_mut());
             dh.iter_mut().zip(&dx).for_each(|(a, b)| *a += b);
@@ -552,6 +598,26 @@ mod tests {
         let normal = Normal::new(0.0, 0.5).unwrap();
         net.params.iter_mut().for_each(|p| *p += normal.sample(&mut rng));
         net
+    }
+
+    #[test]
+    fn a_training_batch_gives_the_same_pass_on_any_number_of_threads() {
+        // Large enough for the row-wise passes to split into blocks.
+        let net = small();
+        let n = 3000;
+        assert!(n * 3 * 8 > 2 * BLOCK_ELEMENTS);
+        let x: Vec<f32> = (0..n * 3 * 5).map(|i| ((i as f32) * 0.37).sin()).collect();
+        let t: Vec<f32> = (0..n).map(|i| (i as f32 * 0.13).fract()).collect();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| {
+                let tape = net.forward(&x, &t, n);
+                let mut grads = vec![0.0; net.num_params()];
+                net.backward(&tape, &tape.output, &mut grads);
+                (tape.output.clone(), grads)
+            })
+        };
+        assert_eq!(run(1), run(3));
     }
 
     #[test]
