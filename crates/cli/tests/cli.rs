@@ -214,7 +214,12 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     let standing = ["eval", "reach", "--standing", "--model", "fm=fm", "--scales", "0", "--trials", "2", "-o", "eval"];
     let text = ok(dir, &standing);
     assert!(text.contains("| within 0.10 m | median time to reach (s) |"), "{text}");
-    assert!(dir.join("eval/reach-standing.csv").exists(), "{text}");
+    // Low targets are reported apart: the row's share of them is the CSV's, trial by trial.
+    let csv = std::fs::read_to_string(dir.join("eval/reach-standing.csv")).unwrap();
+    let low: Vec<f64> = csv.lines().skip(1).map(|l| l.split(',').nth(13).unwrap().parse().unwrap()).collect();
+    let share = 100.0 * low.iter().sum::<f64>() / low.len() as f64;
+    assert!(text.contains("| targets below 0.9 m: within 0.10 m / falls |"), "{text}");
+    assert!(text.contains(&format!(" of {share:.0}% |")), "{share}% low in the CSV:\n{text}");
     let text = ok(dir, &["eval", "waypoint", "--model", "fm=fm", "--scales", "10", "--trials", "1", "-o", "eval"]);
     assert!(text.contains("| arrived |") && dir.join("eval/waypoint.csv").exists(), "{text}");
     // Guiding the last solver step too is another point: measured anew and said in the report.

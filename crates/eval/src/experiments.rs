@@ -413,19 +413,23 @@ impl Study<'_> {
             name: "reach-standing",
             settings: self.settings(&format!("heights {low}-{high} m")),
             title: "Reaching while standing",
-            columns: vec!["closest", "reached", "seconds", "fell"],
+            // Per trial: whether its target is low, and whether it reached and fell as a low one,
+            // so that the row can say how the low targets and the others fare apart.
+            columns: vec!["closest", "reached", "seconds", "fell", "low", "low_reached", "low_fell"],
             plot: "reached",
             x_label: "guidance scale w",
             y_label: "share within 0.10 m",
-            header: "| model | H | w | closest (m) | within 0.10 m | median time to reach (s) | falls |\n|---|---|---|---|---|---|---|",
+            header: "| model | H | w | closest (m) | within 0.10 m | median time to reach (s) | falls | targets below 0.9 m: within 0.10 m / falls | the others |\n|---|---|---|---|---|---|---|---|---|",
         };
         let (near, far) = protocols::STANDING_DISTANCES;
         let notes = format!(
             "Standing (a zero joystick command), the right hand asked for a target {low}-{high} m high, {near}-{far} m out \
              from where the right shoulder starts (horizontally, from straight ahead to straight out to the side); 4 s; \
              reached when the hand comes within {} m; the median time to reach counts a trial that never reaches as \
-             never (a dash when half or more never do); NFE {nfe}, {trials} trials.",
-            protocols::STANDING_REACHED
+             never (a dash when half or more never do); targets below {} m, which ask the walker to bend, and the \
+             others each get their own share within reach and of falls; NFE {nfe}, {trials} trials.",
+            protocols::STANDING_REACHED,
+            protocols::STANDING_LOW
         );
         self.guided_sweep(
             &exp,
@@ -434,21 +438,34 @@ impl Study<'_> {
                 let r = protocols::reach_standing(bench, point, heights, trials, report)?;
                 Ok(r.iter()
                     .map(|t| {
-                        vec![t.reach.min, rate(t.seconds_to_reach.is_finite()), t.seconds_to_reach, rate(t.reach.fell)]
+                        let (reached, low) =
+                            (rate(t.seconds_to_reach.is_finite()), rate(t.height < protocols::STANDING_LOW));
+                        let fell = rate(t.reach.fell);
+                        vec![t.reach.min, reached, t.seconds_to_reach, fell, low, low * reached, low * fell]
                     })
                     .collect())
             },
             |m, s, _| {
                 let median = s.median["seconds"];
                 let median = if median.is_finite() { format!("{median:.2}") } else { "—".into() };
+                // Shares within each group of targets, from the means of the per-trial columns.
+                let (low, high) = (s.mean["low"], 1.0 - s.mean["low"]);
+                let share =
+                    |part: f64, of: f64| if of > 0.0 { format!("{:.0}%", 100.0 * part / of) } else { "—".into() };
+                let (low_reached, low_fell) = (s.mean["low_reached"], s.mean["low_fell"]);
                 format!(
-                    "| {} | {} | {} | {:.3} | {:.0}% | {median} | {:.0}% |",
+                    "| {} | {} | {} | {:.3} | {:.0}% | {median} | {:.0}% | {} / {} of {:.0}% | {} / {} |",
                     m.label,
                     s.horizon,
                     s.scale,
                     s.mean["closest"],
                     100.0 * s.mean["reached"],
-                    100.0 * s.mean["fell"]
+                    100.0 * s.mean["fell"],
+                    share(low_reached, low),
+                    share(low_fell, low),
+                    100.0 * low,
+                    share(s.mean["reached"] - low_reached, high),
+                    share(s.mean["fell"] - low_fell, high),
                 )
             },
             &notes,

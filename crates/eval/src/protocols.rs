@@ -266,10 +266,15 @@ pub const STANDING_REACHED: f64 = 0.10;
 pub const STANDING_HEIGHTS: (f64, f64) = (0.5, 1.6);
 pub const STANDING_DISTANCES: (f64, f64) = (0.2, 0.65);
 
-/// One standing reach: the hand's distances, and when it first came within
+/// Below this height (m) a standing reach's target asks the walker to bend: a standing hand
+/// hangs at 0.7-0.9 m, and `eval reach --standing` reports these targets apart.
+pub const STANDING_LOW: f64 = 0.9;
+
+/// One standing reach: the target's height, the hand's distances, and when it first came within
 /// [`STANDING_REACHED`] (s after the start; infinite when it never did).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct StandingReachTrial {
+    pub height: f64,
     pub reach: ReachTrial,
     pub seconds_to_reach: f64,
 }
@@ -312,7 +317,7 @@ pub fn reach_standing(
             // Step k + 1 is the first within reach (the hands start at step 1).
             let first = hands.iter().position(|h| distance(h, &target) <= STANDING_REACHED);
             let seconds_to_reach = first.map_or(f64::INFINITY, |k| (k + 1) as f64 / CONTROL_HZ);
-            StandingReachTrial { reach, seconds_to_reach }
+            StandingReachTrial { height: target[2], reach, seconds_to_reach }
         })
         .collect())
 }
