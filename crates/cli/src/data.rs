@@ -145,8 +145,8 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
     println!("{:<20} {:>6} {:>9} {:>8}", "clip", "sigma", "steps", "hours");
     let mut per_sigma: BTreeMap<String, (usize, usize, usize)> = BTreeMap::new();
     let (mut speeds, mut hands, mut walking) = (Vec::new(), Vec::new(), Vec::new());
-    // The higher hand of each step.
-    let mut high_hands = Vec::new();
+    // Each step's left and right hand heights and the pelvis's (a crouch shows there).
+    let (mut left, mut right, mut pelvis) = (Vec::new(), Vec::new(), Vec::new());
     let (mut s_lo, mut s_hi) = (vec![f32::MAX; STATE_DIM], vec![f32::MIN; STATE_DIM]);
     let (mut a_lo, mut a_hi) = (f32::MAX, f32::MIN);
     let mut per_clip = Vec::new();
@@ -176,7 +176,9 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
             let [l, r] = [body::L_HAND, body::R_HAND]
                 .map(|h| f64::from(row[offset::ROOT_POS + 2] + row[offset::BODY_POS + 3 * h + 2]));
             hands.extend([l, r]);
-            high_hands.push(l.max(r));
+            left.push(l);
+            right.push(r);
+            pelvis.push(f64::from(row[offset::ROOT_POS + 2]));
         }
         for &a in &shard.action {
             a_lo = a_lo.min(a);
@@ -225,28 +227,41 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
     Chart::new("state coverage: hand height", "hand height above ground (m)", "fraction of hand samples")
         .series(Series::line("hands", flowmimic_plot::histogram(&hands, 0.0, 2.0, 40)))
         .save(&dir.join("coverage_hand_height"))?;
-    print_hand_heights(&high_hands);
+    print_hand_heights(&left, &right, &pelvis);
     println!("\nwrote coverage_root_speed and coverage_hand_height (.png, .svg) in {}", dir.display());
     crate::motion::print_coverage(&Coverage::of_walks(walking), &dir)
 }
 
-/// The histogram of the higher hand's height over steps, in 0.1 m bins, and the shares above
-/// the reaching heights.
-fn print_hand_heights(heights: &[f64]) {
-    let n = heights.len().max(1) as f64;
-    let above = |h: f64| 100.0 * heights.iter().filter(|&&x| x > h).count() as f64 / n;
-    println!("\nhigher hand's height (m)   share of steps");
+/// Below these heights (m) a step reaches low: a standing hand hangs at 0.7-0.9 m and the
+/// pelvis at about 0.9 m, so a hand under 0.7 m or a pelvis under 0.8 m is a bend or a crouch.
+const HAND_LOW: f64 = 0.7;
+const PELVIS_LOW: f64 = 0.8;
+
+/// The histogram of each hand's height over steps (and of the higher one), in 0.1 m bins, and
+/// the shares above the reaching heights and below the bending ones.
+fn print_hand_heights(left: &[f64], right: &[f64], pelvis: &[f64]) {
+    let higher: Vec<f64> = left.iter().zip(right).map(|(l, r)| l.max(*r)).collect();
+    let share = |heights: &[f64], within: &dyn Fn(f64) -> bool| {
+        100.0 * heights.iter().filter(|&&x| within(x)).count() as f64 / heights.len().max(1) as f64
+    };
+    println!("\nhand height (m)   left    right   higher (share of steps)");
     for k in 0..20 {
         let (lo, hi) = (0.1 * k as f64, 0.1 * (k + 1) as f64);
-        let share = heights.iter().filter(|&&x| (lo..hi).contains(&x)).count() as f64 / n;
-        if share > 0.0 {
-            println!("  {lo:.1}-{hi:.1}  {:>6.1}%  {}", 100.0 * share, "#".repeat((100.0 * share).round() as usize));
+        let [l, r, h] = [left, right, &higher].map(|x| share(x, &|v| (lo..hi).contains(&v)));
+        if l + r > 0.0 {
+            println!("  {lo:.1}-{hi:.1}  {l:>7.1}% {r:>7.1}% {h:>7.1}%  {}", "#".repeat(h.round() as usize));
         }
     }
     println!(
         "  a hand above {HAND_HIGH} m in {:.1}% of steps, above {HAND_OVERHEAD} m in {:.1}%",
-        above(HAND_HIGH),
-        above(HAND_OVERHEAD)
+        share(&higher, &|v| v > HAND_HIGH),
+        share(&higher, &|v| v > HAND_OVERHEAD)
+    );
+    println!(
+        "  the right hand below {HAND_LOW} m in {:.1}% of steps, the left in {:.1}%; the pelvis below {PELVIS_LOW} m in {:.1}%",
+        share(right, &|v| v < HAND_LOW),
+        share(left, &|v| v < HAND_LOW),
+        share(pelvis, &|v| v < PELVIS_LOW)
     );
 }
 

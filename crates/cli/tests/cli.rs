@@ -70,7 +70,11 @@ fn stages_connect_through_their_files() {
     // Coverage and falls per clip as well as in total.
     let per_clip = inspect.lines().filter(|l| l.starts_with("w ") && l.ends_with('%')).count();
     assert!(inspect.contains("sidestepping  reversing  fall rate") && per_clip == 1, "{inspect}");
-    assert!(inspect.contains("higher hand's height") && inspect.contains("a hand above 1.1 m in"), "{inspect}");
+    assert!(
+        inspect.contains("hand height (m)   left    right   higher") && inspect.contains("a hand above 1.1 m in"),
+        "{inspect}"
+    );
+    assert!(inspect.contains("the right hand below 0.7 m in"), "{inspect}");
     let stats = ok(&dir, &["dataset", "stats", "data", "--history", "2", "--horizon", "3"]);
     assert!(stats.contains("windows") && dir.join("data/stats-N2-H3.safetensors").exists(), "{stats}");
     trajectory_model_trains_resumes_and_drives(&dir);
