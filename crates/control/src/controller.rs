@@ -180,7 +180,9 @@ fn check_sampler(model: &TrajectoryModel, config: &ControlConfig) -> Result<(), 
     }
     if beta > 0.0 && config.execute != 1 {
         return Err(ControlError::Sampler(format!(
-            "inverse-dynamics actions need execute 1 (the plan's next state is for the current step), not {}",
+            "inverse-dynamics actions (share {beta}, from --inverse-dynamics or the model's recommended.toml) need \
+             execute 1 (the plan's next state is for the current step), not {}: run with --inverse-dynamics 0 to execute \
+             more actions of each plan",
             config.execute
         )));
     }
