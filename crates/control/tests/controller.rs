@@ -227,7 +227,7 @@ fn inverse_dynamics_executes_the_plans_next_state() {
     let err = refused(&shipped("fm-walk"), &config);
     assert!(err.contains("no inverse.safetensors"), "{err}");
     let err = refused(&model, &ControlConfig { execute: 2, ..config.clone() });
-    assert!(err.contains("execute 1"), "{err}");
+    assert!(err.contains("execute 1") && err.contains("run with --inverse-dynamics 0"), "{err}");
     let err = refused(&model, &ControlConfig { inverse_dynamics: 1.5, ..config });
     assert!(err.contains("inverse-dynamics share"), "{err}");
 }
