@@ -144,7 +144,7 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
     let shards = dataset.load_all()?;
     println!("{:<20} {:>6} {:>9} {:>8}", "clip", "sigma", "steps", "hours");
     let mut per_sigma: BTreeMap<String, (usize, usize, usize)> = BTreeMap::new();
-    let (mut speeds, mut hands, mut walking) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut speeds, mut walking) = (Vec::new(), Vec::new());
     // Each step's left and right hand heights and the pelvis's (a crouch shows there).
     let (mut left, mut right, mut pelvis) = (Vec::new(), Vec::new(), Vec::new());
     let (mut s_lo, mut s_hi) = (vec![f32::MAX; STATE_DIM], vec![f32::MIN; STATE_DIM]);
@@ -175,7 +175,6 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
             speeds.push(f64::from(row[offset::ROOT_VEL]).hypot(f64::from(row[offset::ROOT_VEL + 1])));
             let [l, r] = [body::L_HAND, body::R_HAND]
                 .map(|h| f64::from(row[offset::ROOT_POS + 2] + row[offset::BODY_POS + 3 * h + 2]));
-            hands.extend([l, r]);
             left.push(l);
             right.push(r);
             pelvis.push(f64::from(row[offset::ROOT_POS + 2]));
@@ -225,7 +224,7 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
         .series(Series::line("root speed", flowmimic_plot::histogram(&speeds, 0.0, 3.0, 30)))
         .save(&dir.join("coverage_root_speed"))?;
     Chart::new("state coverage: hand height", "hand height above ground (m)", "fraction of hand samples")
-        .series(Series::line("hands", flowmimic_plot::histogram(&hands, 0.0, 2.0, 40)))
+        .series(Series::line("hands", flowmimic_plot::histogram(&[left.as_slice(), &right].concat(), 0.0, 2.0, 40)))
         .save(&dir.join("coverage_hand_height"))?;
     print_hand_heights(&left, &right, &pelvis);
     println!("\nwrote coverage_root_speed and coverage_hand_height (.png, .svg) in {}", dir.display());

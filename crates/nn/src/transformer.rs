@@ -240,9 +240,9 @@ where
     results.into_iter().map(|(_, t)| t).collect()
 }
 
-/// `f(y, x)` for every element of `y` and `x` (rows of `d`).
-fn apply_rows(y: &mut [f32], x: &[f32], d: usize, f: impl Fn(&mut f32, f32) + Sync + Send) {
-    let chunk = block_rows(x.len() / d, d) * d;
+/// `f(y, x)` for every element of `y` and `x`, in blocks of [`BLOCK_ELEMENTS`].
+fn apply(y: &mut [f32], x: &[f32], f: impl Fn(&mut f32, f32) + Sync + Send) {
+    let chunk = BLOCK_ELEMENTS.min(x.len()).max(1);
     for_blocks(y.chunks_mut(chunk).zip(x.chunks(chunk)), |(y, x)| y.iter_mut().zip(x).for_each(|(y, &x)| f(y, x)));
 }
 
@@ -402,7 +402,7 @@ impl Transformer {
             let (bn, norm2) = layer_norm(&h, d, self.p(&b.ln2.0), self.p(&b.ln2.1));
             let pre_gelu = dense::forward(&bn, rows, self.p(&b.ff1.0), self.p(&b.ff1.1), d);
             let mut hidden = vec![0.0; pre_gelu.len()];
-            apply_rows(&mut hidden, &pre_gelu, c.d_ff, |h, u| *h = gelu(u));
+            apply(&mut hidden, &pre_gelu, |h, u| *h = gelu(u));
             let out = dense::forward(&hidden, rows, self.p(&b.ff2.0), self.p(&b.ff2.1), c.d_ff);
             h.iter_mut().zip(&out).for_each(|(h, o)| *h += o);
             blocks.push(BlockTape { norm1, a, qkv, probs, attended, norm2, b: bn, pre_gelu, hidden });
@@ -521,7 +521,7 @@ impl Transformer {
         for (b, t) in s.blocks.iter().zip(&tape.blocks).rev() {
             // Feed-forward branch.
             let mut du = self.dense_backward(&b.ff2, &t.hidden, &dh, rows, grads.as_deref_mut(), true).expect("dx");
-            apply_rows(&mut du, &t.pre_gelu, c.d_ff, |g, u| *g *= gelu_grad(u));
+            apply(&mut du, &t.pre_gelu, |g, u| *g *= gelu_grad(u));
             let dbn = self.dense_backward(&b.ff1, &t.b, &du, rows, grads.as_deref_mut(), true).expect("dx");
             let dx = self.norm_backward(&b.ln2, &dbn, &t.norm2, grads.as_deref_mut());
             dh.iter_mut().zip(&dx).for_each(|(a, b)| *a += b);
