@@ -4,7 +4,7 @@ use anyhow::{Result, bail};
 use clap::Subcommand;
 use flowmimic_data::{CollectConfig, Dataset, ShardInfo, Stats, WindowSpec, collect};
 use flowmimic_motion::Coverage;
-use flowmimic_motion::clip::{HAND_HIGH, HAND_OVERHEAD};
+use flowmimic_motion::clip::{HAND_HIGH, HAND_LOW, HAND_OVERHEAD};
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::skeleton::body;
 use flowmimic_sim::state::offset;
@@ -231,9 +231,7 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
     crate::motion::print_coverage(&Coverage::of_walks(walking), &dir)
 }
 
-/// Below these heights (m) a step reaches low: a standing hand hangs at 0.7-0.9 m and the
-/// pelvis at about 0.9 m, so a hand under 0.7 m or a pelvis under 0.8 m is a bend or a crouch.
-const HAND_LOW: f64 = 0.7;
+/// Below this height (m) the pelvis is in a crouch: it stands at about 0.9 m.
 const PELVIS_LOW: f64 = 0.8;
 
 /// The histogram of each hand's height over steps (and of the higher one), in 0.1 m bins, and

@@ -59,10 +59,10 @@ pub enum MotionCommand {
         /// m/s) or a turn on the spot (0.3-0.7 rad/s).
         #[arg(long, requires = "wander")]
         transitions: bool,
-        /// Hands reach for targets and back while the walk slows (0.4-1.7 m high, more often
-        /// high than low; 0.2-0.7 m out from the shoulder, ahead and to the side; out 0.4-1.0 s,
-        /// held 0.3-1.5 s): the
-        /// share of the time a hand is out, 0.5 when given without a value.
+        /// Hands reach for targets and back while the walk slows (a third 0.4-0.9 m high, with a
+        /// squat and a stoop, the rest 1.1-1.7 m; 0.2-0.7 m out from the shoulder, ahead and to
+        /// the side; out 0.4-1.0 s, held 0.3-1.5 s): the share of the time a hand is out, 0.5
+        /// when given without a value.
         #[arg(long, num_args = 0..=1, default_missing_value = "0.5", value_name = "SHARE")]
         reach: Option<f64>,
         /// One walk that follows a command schedule instead of the gait flags, `run`'s syntax:
@@ -175,7 +175,7 @@ impl GaitArgs {
 
 fn header() {
     println!(
-        "{:<24} {:>6} {:>6} {:>6} {:>6} {:>7} {:>7} {:>6} {:>6} {:>6} {:>6} {:>6} {:>6} {:>6} {:>7}",
+        "{:<24} {:>6} {:>6} {:>6} {:>6} {:>7} {:>7} {:>6} {:>6} {:>6} {:>6} {:>6} {:>6} {:>6} {:>6} {:>7}",
         "clip",
         "frames",
         "sec",
@@ -190,6 +190,7 @@ fn header() {
         "side",
         "h>1.1",
         "h>1.4",
+        "h<0.7",
         "v max"
     );
 }
@@ -198,7 +199,7 @@ fn row(humanoid: &Arc<Humanoid>, clip: &Clip) {
     let q = clip.quality(humanoid);
     let cov = Coverage::of(clip.walking_velocities());
     println!(
-        "{:<24} {:>6} {:>6.2} {:>6.2} {:>6.3} {:>7.2} {:>7.3} {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>6.1}{}",
+        "{:<24} {:>6} {:>6.2} {:>6.2} {:>6.3} {:>7.2} {:>7.3} {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>5.0}% {:>6.1}{}",
         clip.name,
         q.frames,
         q.duration,
@@ -213,6 +214,7 @@ fn row(humanoid: &Arc<Humanoid>, clip: &Clip) {
         100.0 * cov.sidestep,
         100.0 * q.hand_high,
         100.0 * q.hand_overhead,
+        100.0 * q.hand_low,
         q.body_speed_max,
         // A clip whose bodies jump between frames: no expert can follow it.
         if q.body_speed_max > BODY_SPEED_JUMP { "  JUMPS" } else { "" }

@@ -240,6 +240,7 @@ impl Clip {
             airborne: (n - single - double) as f64 / n as f64,
             hand_high: self.share_with_hand_above(HAND_HIGH),
             hand_overhead: self.share_with_hand_above(HAND_OVERHEAD),
+            hand_low: self.share_with_hand_below(HAND_LOW),
             body_speed_max: self.body_speed_max(),
         }
     }
@@ -258,6 +259,12 @@ impl Clip {
     pub fn share_with_hand_above(&self, height: f64) -> f64 {
         let above = self.bodies.iter().filter(|b| b.pos[body::L_HAND].z.max(b.pos[body::R_HAND].z) > height).count();
         above as f64 / self.len().max(1) as f64
+    }
+
+    /// Fraction of frames with a hand (either) below `height`, m.
+    pub fn share_with_hand_below(&self, height: f64) -> f64 {
+        let below = self.bodies.iter().filter(|b| b.pos[body::L_HAND].z.min(b.pos[body::R_HAND].z) < height).count();
+        below as f64 / self.len().max(1) as f64
     }
 
     /// Writes the clip atomically (see the module docs for the format).
@@ -438,6 +445,8 @@ pub struct Quality {
     /// Fractions of frames with a hand (either) above [`HAND_HIGH`] and [`HAND_OVERHEAD`].
     pub hand_high: f64,
     pub hand_overhead: f64,
+    /// Fraction of frames with a hand (either) below [`HAND_LOW`].
+    pub hand_low: f64,
     /// The fastest any body moves from one frame to the next, m/s: a person's hand peaks near
     /// 3 m/s; far beyond, the clip jumps (a retargeting glitch no expert can follow).
     pub body_speed_max: f64,
@@ -450,6 +459,9 @@ pub const BODY_SPEED_JUMP: f64 = 6.0;
 /// hand above 1.1 m reaches for a table or shelf, above 1.4 m for a high shelf.
 pub const HAND_HIGH: f64 = 1.1;
 pub const HAND_OVERHEAD: f64 = 1.4;
+/// Below this height, m, a hand reaches low: a standing hand hangs at 0.7-0.9 m, so one under
+/// 0.7 m comes with a bend or a crouch.
+pub const HAND_LOW: f64 = 0.7;
 
 /// Generalised velocity from pose `a` to pose `b` over `dt` seconds (free root layout).
 fn velocity(a: &[f64], b: &[f64], dt: f64) -> Vec<f64> {

@@ -444,11 +444,19 @@ fn the_corpus_with_arms_holds_reaches_transitions_and_the_captures_of_the_subfol
         names.iter().filter(|n| stems.iter().any(|s| s == *n)).count()
     };
     assert!(from("arms") >= 6 && from("walks") >= 10, "arms {} walks {}", from("arms"), from("walks"));
-    // The reaching clips raise a hand above the walking swing, the arms captures too.
-    for clip in built.clips.iter().filter(|c| c.name.starts_with("reach")) {
+    // The reaching clips raise a hand above the walking swing and lower one below it (each
+    // clip one or the other, all of them both), the arms captures too.
+    let reaching: Vec<_> = built.clips.iter().filter(|c| c.name.starts_with("reach")).collect();
+    for clip in &reaching {
         assert!(clip.duration() >= 30.0, "{}: {:.1} s", clip.name, clip.duration());
-        assert!(clip.share_with_hand_above(clip::HAND_HIGH) > 0.1, "{}", clip.name);
+        let (high, low) = (clip.share_with_hand_above(clip::HAND_HIGH), clip.share_with_hand_below(clip::HAND_LOW));
+        assert!(high.max(low) > 0.1, "{}: a hand high in {high:.2} of frames, low in {low:.2}", clip.name);
     }
+    let frames = |share: &dyn Fn(&Clip) -> f64| reaching.iter().map(|c| share(c) * c.len() as f64).sum::<f64>();
+    let all = frames(&|_| 1.0);
+    let high = frames(&|c| c.share_with_hand_above(clip::HAND_HIGH)) / all;
+    let low = frames(&|c| c.share_with_hand_below(clip::HAND_LOW)) / all;
+    assert!(high > 0.1 && low > 0.1, "the reaching clips: a hand high in {high:.2} of frames, low in {low:.2}");
     let arms = built.clips.iter().find(|c| c.name == "02_06").unwrap();
     assert!(arms.share_with_hand_above(clip::HAND_OVERHEAD) > 0.3);
     // No clip jumps between frames: the captures that do are left out, named.

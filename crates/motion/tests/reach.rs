@@ -58,7 +58,8 @@ fn reaching_clips(h: &Arc<Humanoid>) -> Vec<(Clip, Schedule, RetargetReport)> {
 fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
     let h = Humanoid::new(SimConfig::default()).unwrap();
     let mut env = h.env();
-    let (mut reaches, mut lowest, mut highest, mut worst_balance) = (0, f64::MAX, 0.0_f64, 0.0_f64);
+    let (mut reaches, mut low, mut lowest, mut highest, mut worst_balance) = (0, 0, f64::MAX, 0.0_f64, 0.0_f64);
+    let mut lowest_pelvis = f64::MAX;
     for (n, (clip, schedule, report)) in reaching_clips(&h).iter().enumerate() {
         let targets = generator::reach_targets(schedule);
         assert!(!targets.is_empty(), "clip {n} has no reach");
@@ -79,11 +80,13 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
                 assert!(v < reach::HOLD_SPEED + 0.1, "{what}: frame {t}: the pelvis moves at {v:.2} m/s");
             }
             assert!(worst < 0.02, "{what}: the hand is {:.1} cm from its target during the hold", 100.0 * worst);
+            low += usize::from(r.height < reach::LOW);
             lowest = lowest.min(r.height);
             highest = highest.max(r.height);
             // Low targets are reached by bending: the pelvis lower or the chest tilted.
             let mid = &clip.bodies[(*hold.start() + *hold.end()) / 2];
             let tilt = (mid.rot[body::CHEST] * flowmimic_geom::DVec3::Z).z.acos().to_degrees();
+            lowest_pelvis = lowest_pelvis.min(mid.pos[body::PELVIS].z);
             if r.height < 0.6 {
                 assert!(
                     tilt > 20.0 && mid.pos[body::PELVIS].z < 0.85,
@@ -110,9 +113,16 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
                 let com = env.centre_of_mass().truncate();
                 // Distance to the line between the feet's middles (the support, less the feet).
                 let along = ((com - l).dot(r - l) / (r - l).length_squared()).clamp(0.0, 1.0);
-                let off = com.distance(l + along * (r - l));
-                worst_balance = worst_balance.max(off);
-                assert!(off < 0.1, "{what}: the centre of mass is {off:.2} m from between the feet");
+                let off = com - (l + along * (r - l));
+                worst_balance = worst_balance.max(off.length());
+                let forward = (k.rot[body::PELVIS] * flowmimic_geom::DVec3::X).truncate();
+                let way = if off.dot(forward) > 0.0 { "ahead of" } else { "behind" };
+                assert!(
+                    off.length() < 0.1,
+                    "{what}: the centre of mass is {:.2} m {way} the feet, the pelvis {:.2} m high",
+                    off.length(),
+                    k.pos[body::PELVIS].z
+                );
             }
             for (a, b) in env.self_contacts() {
                 assert!(!common::legs_touch((a, b)), "{what}: legs {a} and {b} touch");
@@ -131,7 +141,13 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
     }
     assert!(reaches >= 40, "only {reaches} reaches");
     eprintln!("reaching slowly, the centre of mass was at most {worst_balance:.3} m from between the feet");
-    // Targets span the range, from near the floor to above the head (half of them are drawn
-    // above 1.1 m, so fewer come low than when all were drawn evenly).
+    // Targets span the range, from near the floor to above the head, and a quarter or more come
+    // low, reached with a squat (a third are drawn there; some low and far are out of reach).
     assert!(lowest < 0.6 && highest > 1.6, "targets {lowest:.2}-{highest:.2} m high");
+    assert!(4 * low >= reaches, "{low} of {reaches} targets below {} m", reach::LOW);
+    eprintln!(
+        "{low} of {reaches} targets below {} m; the lowest pelvis while holding {lowest_pelvis:.2} m",
+        reach::LOW
+    );
+    assert!(lowest_pelvis < 0.7, "the pelvis holds no lower than {lowest_pelvis:.2} m");
 }
