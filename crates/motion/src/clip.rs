@@ -257,14 +257,18 @@ impl Clip {
 
     /// Fraction of frames in which either hand is higher than `height`, m.
     pub fn share_with_hand_above(&self, height: f64) -> f64 {
-        let above = self.bodies.iter().filter(|b| b.pos[body::L_HAND].z.max(b.pos[body::R_HAND].z) > height).count();
-        above as f64 / self.len().max(1) as f64
+        self.share_of_hand_heights(|l, r| l.max(r) > height)
     }
 
     /// Fraction of frames with a hand (either) below `height`, m.
     pub fn share_with_hand_below(&self, height: f64) -> f64 {
-        let below = self.bodies.iter().filter(|b| b.pos[body::L_HAND].z.min(b.pos[body::R_HAND].z) < height).count();
-        below as f64 / self.len().max(1) as f64
+        self.share_of_hand_heights(|l, r| l.min(r) < height)
+    }
+
+    /// Fraction of frames whose left and right hand heights, m, satisfy `keep`.
+    fn share_of_hand_heights(&self, keep: impl Fn(f64, f64) -> bool) -> f64 {
+        let kept = self.bodies.iter().filter(|b| keep(b.pos[body::L_HAND].z, b.pos[body::R_HAND].z)).count();
+        kept as f64 / self.len().max(1) as f64
     }
 
     /// Writes the clip atomically (see the module docs for the format).

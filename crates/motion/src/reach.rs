@@ -28,6 +28,8 @@ pub const HOLD_TURN: f64 = 0.05;
 pub const HEIGHTS: [f64; 2] = [0.4, 1.7];
 pub const LOW: f64 = 0.9;
 pub const HIGH: f64 = 1.1;
+/// Share of the targets drawn below [`LOW`].
+const LOW_SHARE: f64 = 1.0 / 3.0;
 pub const DISTANCES: [f64; 2] = [0.2, 0.7];
 /// Seconds to bring the hand out, to hold it, and to bring it back.
 pub const APPROACH: [f64; 2] = [0.4, 1.0];
@@ -151,7 +153,7 @@ impl Reaching {
         let mut t = rng.random_range(0.3..1.0_f64.max(mean_gap));
         loop {
             let r = loop {
-                let (lowest, highest) = if rng.random_bool(1.0 / 3.0) { (HEIGHTS[0], LOW) } else { (HIGH, HEIGHTS[1]) };
+                let (lowest, highest) = if rng.random_bool(LOW_SHARE) { (HEIGHTS[0], LOW) } else { (HIGH, HEIGHTS[1]) };
                 let r = Reach {
                     start: t,
                     approach: rng.random_range(APPROACH[0]..APPROACH[1]),
