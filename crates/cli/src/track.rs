@@ -5,7 +5,7 @@ use anyhow::{Context, Result};
 use clap::Subcommand;
 use flowmimic_motion::Clip;
 use flowmimic_plot::{Chart, Series};
-use flowmimic_sim::Humanoid;
+use flowmimic_sim::{CONTROL_HZ, Humanoid};
 use flowmimic_track::train::{Checkpoint, ClipLog, EvalReport, IterationLog};
 use flowmimic_track::{EvalSetup, TrackConfig, Trainer, evaluate};
 use std::path::{Path, PathBuf};
@@ -42,8 +42,9 @@ pub enum TrackCommand {
         /// The run directory.
         run: PathBuf,
     },
-    /// Tracking metrics of a trained policy on its clips (one JSON line per clip), or on other
-    /// clips it was not trained on (`--clip`, repeatable): how well it tracks unseen walks.
+    /// Tracking metrics of a trained policy on its clips (one JSON line per clip, then a table
+    /// with the clip seconds where episodes failed), or on other clips it was not trained on
+    /// (`--clip`, repeatable): how well it tracks unseen walks.
     Eval {
         /// The run directory (policy.safetensors and clip.safetensors).
         run: PathBuf,
@@ -147,7 +148,7 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
             let (cfg, policy_net) = (ck.config()?, ck.policy()?);
             let clips = if clip.is_empty() { run_clips(humanoid, &run)? } else { load_clips(humanoid, &clip)? };
             // One JSON line per clip, so that a failing clip cannot hide behind an average;
-            // with several, a table of them after (stderr, so that stdout stays JSON lines).
+            // a table of them after (stderr, so that stdout stays JSON lines).
             let mut reports = Vec::new();
             for clip in clips {
                 let setup = EvalSetup { episodes, start_frame, kicks, seed: 12345 };
@@ -155,39 +156,52 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
                 println!("{}", serde_json::to_string(&report)?);
                 reports.push(report);
             }
-            if reports.len() > 1 {
-                print_eval_table(&reports, kicks);
-            }
+            print_eval_table(&reports, kicks);
         }
     }
     Ok(())
 }
 
-/// The per-clip reports as a table, worst completion first, with how many clips meet the
-/// tracking bar (95% of episodes complete, 90% with kicks; body error under 6 cm).
+/// The per-clip reports as a table, worst completion first, with where the failures happen
+/// and how many clips meet the tracking bar (95% of episodes complete, 90% with kicks; body
+/// error under 6 cm).
 fn print_eval_table(reports: &[EvalReport], kicks: bool) {
     let bar = if kicks { 0.9 } else { 0.95 };
     let mut sorted: Vec<_> = reports.iter().collect();
     sorted.sort_by(|a, b| a.success_rate.total_cmp(&b.success_rate));
     eprintln!(
-        "\n{:<20} {:>9} {:>10} {:>11} {:>12} {:>5}",
+        "\n{:<20} {:>9} {:>10} {:>11} {:>12} {:>5}  fails at (clip second x episodes)",
         "clip", "completed", "body err", "steps", "root path", "bar"
     );
     let meets = |r: &EvalReport| r.success_rate >= bar && r.body_pos_error < 0.06;
     for r in &sorted {
         eprintln!(
-            "{:<20} {:>8.0}% {:>7.1} cm {:>5.0} / {:<5} {:>7.2} m/s {:>5}",
+            "{:<20} {:>8.0}% {:>7.1} cm {:>5.0} / {:<5} {:>7.2} m/s {:>5}  {}",
             r.clip,
             100.0 * r.success_rate,
             100.0 * r.body_pos_error,
             r.mean_steps,
             r.clip_steps,
             r.root_path_error,
-            if meets(r) { "yes" } else { "no" }
+            if meets(r) { "yes" } else { "no" },
+            failure_seconds(&r.failure_frames)
         );
     }
     let met = sorted.iter().filter(|r| meets(r)).count();
     eprintln!("{met} of {} clips meet the bar ({:.0}% complete, body error under 6 cm)", reports.len(), 100.0 * bar);
+}
+
+/// The commonest whole seconds of the clip at which episodes failed, most failures first (at
+/// most three), e.g. `9 s x14, 30 s x3`: failures at one second from every start mark a part
+/// of the clip the policy cannot track.
+fn failure_seconds(frames: &[usize]) -> String {
+    let mut counts = std::collections::BTreeMap::<usize, usize>::new();
+    for &f in frames {
+        *counts.entry(f / CONTROL_HZ as usize).or_default() += 1;
+    }
+    let mut counts: Vec<_> = counts.into_iter().collect();
+    counts.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+    counts.iter().take(3).map(|(s, n)| format!("{s} s x{n}")).collect::<Vec<_>>().join(", ")
 }
 
 const CLIPS_CSV_HEADER: &str = "iteration,clip,steps,episodes,failures,body_pos_error";

@@ -46,6 +46,12 @@ fn stages_connect_through_their_files() {
     assert!(eval.contains("\"root_path_error\":") && eval.contains("\"end_heading_error\":"), "{eval}");
     let later = ok(&dir, &["track", "eval", "run", "--episodes", "2", "--start-frame", "20"]);
     assert!(later.contains("\"start_frame\":20") && later.contains("\"clip_steps\":45"), "{later}");
+    // Each failed episode names the frame it ended at, after its start; the table says when.
+    let report: serde_json::Value = serde_json::from_str(later.lines().find(|l| l.starts_with('{')).unwrap()).unwrap();
+    let frames: Vec<u64> = report["failure_frames"].as_array().unwrap().iter().map(|f| f.as_u64().unwrap()).collect();
+    let failed = (2.0 * (1.0 - report["success_rate"].as_f64().unwrap())).round() as usize;
+    assert!(frames.len() == failed && frames.iter().all(|f| (21..=45).contains(f)), "{later}");
+    assert!(later.contains("fails at (clip second x episodes)"), "{later}");
     let (success, text) = flowmimic(&dir, &["track", "eval", "run", "--start-frame", "45"]);
     assert!(!success && text.contains("start frame 45") && text.contains("clip w"), "{text}");
     let collect = ok(&dir, &["collect", "run", "-o", "data"]);

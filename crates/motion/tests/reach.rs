@@ -149,5 +149,7 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
         "{low} of {reaches} targets below {} m; the lowest pelvis while holding {lowest_pelvis:.2} m",
         reach::LOW
     );
-    assert!(lowest_pelvis < 0.7, "the pelvis holds no lower than {lowest_pelvis:.2} m");
+    // Some low target is reached with most of the squat.
+    let squat = reach::PELVIS_HEIGHT - 0.75 * reach::MAX_DROP;
+    assert!(lowest_pelvis < squat, "the pelvis holds no lower than {lowest_pelvis:.2} m (bar {squat:.2})");
 }

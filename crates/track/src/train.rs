@@ -878,6 +878,9 @@ pub struct EvalReport {
     /// the root-relative errors cannot see accumulates here over a long episode.
     pub end_offset: f64,
     pub end_heading_error: f64,
+    /// The reference frame each failed episode ended at, ascending: a clip that fails at the
+    /// same frames from every start has a part the policy cannot track.
+    pub failure_frames: Vec<usize>,
 }
 
 /// How [`evaluate`] runs: `episodes` deterministic episodes from frame `start_frame` (with the
@@ -941,6 +944,7 @@ pub fn evaluate(
         trackers.iter().map(|t| vec![(root_pose(t.env().qpos()), t.frame)]).collect();
     let (mut path_error_sum, mut path_n) = (0.0, 0usize);
     let (mut offset_sum, mut heading_sum) = (0.0, 0.0);
+    let mut failure_frames = Vec::new();
     let mut raw = vec![0.0f32; episodes * OBS_DIM];
     for _ in start_frame..reference.len() - 1 {
         trackers.par_iter().zip(raw.par_chunks_mut(OBS_DIM)).for_each(|(t, o)| t.observe(&reference, o));
@@ -979,7 +983,10 @@ pub fn evaluate(
                     successes += 1;
                     alive[i] = false;
                 }
-                Ending::Failed | Ending::Diverged => alive[i] = false,
+                Ending::Failed | Ending::Diverged => {
+                    alive[i] = false;
+                    failure_frames.push(now.1);
+                }
             }
             if !alive[i] {
                 let (ours, theirs) = (now.0, root_pose(&clip.qpos[now.1]));
@@ -999,6 +1006,10 @@ pub fn evaluate(
         start_frame,
         end_offset: offset_sum / episodes as f64,
         end_heading_error: heading_sum / episodes as f64,
+        failure_frames: {
+            failure_frames.sort_unstable();
+            failure_frames
+        },
     })
 }
 
