@@ -74,6 +74,11 @@ pub struct TrackConfig {
     pub bin_seconds: f64,
     pub bin_smoothing: f64,
     pub uniform_share: f64,
+    /// Adaptive start sampling: how far before a failure its credit reaches (s), and the
+    /// credit's decay per bin back from the failing one (0-1; BeyondMimic's kernel). A fall
+    /// that follows seconds of drift is practised only if starts land where the drift begins.
+    pub failure_lookback_seconds: f64,
+    pub failure_decay: f64,
     /// With several clips: the share of resets that pick a clip in proportion to its length;
     /// the rest pick one evenly. Long clips get practice in proportion to their motion, short
     /// ones keep a floor.
@@ -125,6 +130,8 @@ impl Default for TrackConfig {
             bin_seconds: 1.0,
             bin_smoothing: 0.1,
             uniform_share: 0.3,
+            failure_lookback_seconds: 1.0,
+            failure_decay: 0.5,
             clip_length_share: 0.5,
             clip_failure_share: 0.0,
             first_frame_share: 0.0,
@@ -163,10 +170,11 @@ impl TrackConfig {
             self.clip_length_share,
             self.clip_failure_share,
             self.first_frame_share,
+            self.failure_decay,
         ];
         if unit.iter().any(|v| !(0.0..=1.0).contains(v)) {
-            return bad("gamma, lambda, bin_smoothing, uniform_share, clip_length_share, clip_failure_share and \
-                 first_frame_share must be in [0, 1]");
+            return bad("gamma, lambda, bin_smoothing, uniform_share, clip_length_share, clip_failure_share, \
+                 first_frame_share and failure_decay must be in [0, 1]");
         }
         let rest = [
             self.entropy,
@@ -176,10 +184,12 @@ impl TrackConfig {
             self.push_max,
             self.max_height_error,
             self.max_tilt_error,
+            self.failure_lookback_seconds,
         ];
         if rest.iter().any(|v| !(v.is_finite() && *v >= 0.0)) || !self.init_log_std.is_finite() {
             return bad(
-                "entropy, value_coef, init_noise, action_noise, push_max and the termination limits must be finite and not negative",
+                "entropy, value_coef, init_noise, action_noise, push_max, failure_lookback_seconds and the termination \
+                 limits must be finite and not negative",
             );
         }
         if !(self.push_interval[0] > 0.0
@@ -205,6 +215,8 @@ impl TrackConfig {
 pub struct StartSampler {
     bin_frames: usize,
     frames: usize,
+    /// The credit a failure gives its own bin and each one before it (1, decay, decay^2, ...).
+    credit: Vec<f64>,
     /// Smoothed failure counts per bin.
     pub failures: Vec<f64>,
     pending: Vec<f64>,
@@ -215,15 +227,15 @@ impl StartSampler {
         let bin_frames = ((cfg.bin_seconds * CONTROL_HZ) as usize).max(1);
         // The last frame cannot start an episode (there is no next reference frame).
         let bins = (frames - 1).div_ceil(bin_frames);
-        Self { bin_frames, frames, failures: vec![0.0; bins], pending: vec![0.0; bins] }
+        let lookback = (cfg.failure_lookback_seconds / cfg.bin_seconds).round() as usize;
+        let credit = (0..=lookback).map(|k| cfg.failure_decay.powi(k as i32)).collect();
+        Self { bin_frames, frames, credit, failures: vec![0.0; bins], pending: vec![0.0; bins] }
     }
 
     fn record_failure(&mut self, frame: usize) {
         let b = (frame / self.bin_frames).min(self.pending.len() - 1);
-        // The cause usually lies a little before the fall: credit the previous bin too.
-        self.pending[b] += 1.0;
-        if b > 0 {
-            self.pending[b - 1] += 0.5;
+        for (k, c) in self.credit.iter().enumerate().take(b + 1) {
+            self.pending[b - k] += c;
         }
     }
 
@@ -1076,6 +1088,39 @@ pub fn bench(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_failure_credits_the_seconds_before_it() {
+        // 30 s at 30 Hz; a fall 22.5 s in, credited 4 s back with a decay of 0.8 per second.
+        let cfg =
+            TrackConfig { failure_lookback_seconds: 4.0, failure_decay: 0.8, bin_smoothing: 1.0, ..Default::default() };
+        let mut sampler = StartSampler::new(901, &cfg);
+        sampler.record_failure(675);
+        sampler.end_iteration(&cfg);
+        let credited: Vec<(usize, f64)> =
+            sampler.failures.iter().copied().enumerate().filter(|&(_, f)| f > 0.0).collect();
+        let expected = [(18, 0.8f64.powi(4)), (19, 0.512), (20, 0.64), (21, 0.8), (22, 1.0)];
+        assert_eq!(credited.len(), expected.len(), "{credited:?}");
+        for ((bin, f), (want_bin, want)) in credited.iter().zip(expected) {
+            assert!(*bin == want_bin && (f - want).abs() < 1e-12, "{credited:?}");
+        }
+        // Without uniform starts, every start lands in the credited seconds.
+        let cfg = TrackConfig { uniform_share: 0.0, ..cfg };
+        let mut rng = StdRng::seed_from_u64(0);
+        let starts: Vec<usize> = (0..1000).map(|_| sampler.sample(&cfg, &mut rng)).collect();
+        assert!(starts.iter().all(|s| (540..690).contains(s)), "{:?}", starts.iter().min());
+        assert!(starts.iter().filter(|&&s| s < 600).count() > 100, "the drift's first seconds are practised");
+
+        // The defaults credit the failing second and half the one before, as before the key.
+        let cfg = TrackConfig { bin_smoothing: 1.0, ..Default::default() };
+        let mut sampler = StartSampler::new(901, &cfg);
+        sampler.record_failure(0);
+        sampler.record_failure(675);
+        sampler.end_iteration(&cfg);
+        let credited: Vec<(usize, f64)> =
+            sampler.failures.iter().copied().enumerate().filter(|&(_, f)| f > 0.0).collect();
+        assert_eq!(credited, [(0, 1.0), (21, 0.5), (22, 1.0)]);
+    }
 
     #[test]
     fn displacements_are_in_the_starting_heading() {
