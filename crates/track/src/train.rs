@@ -1091,18 +1091,23 @@ mod tests {
 
     #[test]
     fn a_failure_credits_the_seconds_before_it() {
-        // 30 s at 30 Hz; a fall 22.5 s in, credited 4 s back with a decay of 0.8 per second.
+        // One iteration's failures at `frames` of a 30 s clip, then the bins they credited.
+        let credited = |cfg: &TrackConfig, frames: &[usize]| {
+            let mut sampler = StartSampler::new(901, cfg);
+            frames.iter().for_each(|&f| sampler.record_failure(f));
+            sampler.end_iteration(cfg);
+            let bins: Vec<(usize, f64)> =
+                sampler.failures.iter().copied().enumerate().filter(|&(_, f)| f > 0.0).collect();
+            (sampler, bins)
+        };
+        // A fall 22.5 s in, credited 4 s back with a decay of 0.8 per second.
         let cfg =
             TrackConfig { failure_lookback_seconds: 4.0, failure_decay: 0.8, bin_smoothing: 1.0, ..Default::default() };
-        let mut sampler = StartSampler::new(901, &cfg);
-        sampler.record_failure(675);
-        sampler.end_iteration(&cfg);
-        let credited: Vec<(usize, f64)> =
-            sampler.failures.iter().copied().enumerate().filter(|&(_, f)| f > 0.0).collect();
-        let expected = [(18, 0.8f64.powi(4)), (19, 0.512), (20, 0.64), (21, 0.8), (22, 1.0)];
-        assert_eq!(credited.len(), expected.len(), "{credited:?}");
-        for ((bin, f), (want_bin, want)) in credited.iter().zip(expected) {
-            assert!(*bin == want_bin && (f - want).abs() < 1e-12, "{credited:?}");
+        let (sampler, bins) = credited(&cfg, &[675]);
+        let expected = [(18, 0.4096), (19, 0.512), (20, 0.64), (21, 0.8), (22, 1.0)];
+        assert_eq!(bins.len(), expected.len(), "{bins:?}");
+        for ((bin, f), (want_bin, want)) in bins.iter().zip(expected) {
+            assert!(*bin == want_bin && (f - want).abs() < 1e-12, "{bins:?}");
         }
         // Without uniform starts, every start lands in the credited seconds.
         let cfg = TrackConfig { uniform_share: 0.0, ..cfg };
@@ -1113,13 +1118,7 @@ mod tests {
 
         // The defaults credit the failing second and half the one before, as before the key.
         let cfg = TrackConfig { bin_smoothing: 1.0, ..Default::default() };
-        let mut sampler = StartSampler::new(901, &cfg);
-        sampler.record_failure(0);
-        sampler.record_failure(675);
-        sampler.end_iteration(&cfg);
-        let credited: Vec<(usize, f64)> =
-            sampler.failures.iter().copied().enumerate().filter(|&(_, f)| f > 0.0).collect();
-        assert_eq!(credited, [(0, 1.0), (21, 0.5), (22, 1.0)]);
+        assert_eq!(credited(&cfg, &[0, 675]).1, [(0, 1.0), (21, 0.5), (22, 1.0)]);
     }
 
     #[test]
