@@ -462,17 +462,28 @@ impl<'a> Plan<'a> {
     }
 }
 
-/// A footprint: where the ankle sits (above the ground) and the foot's heading.
+/// A footprint: where the ankle sits (above the ground), the foot's heading, and how much
+/// wider than walking it stands for a squat.
 #[derive(Clone, Copy)]
 struct Footprint {
     ankle: DVec3,
     yaw: f64,
+    widen: f64,
 }
+
+/// Seconds before a reach starts and after it ends during which the feet stand wide for its
+/// squat: they step out before the pelvis drops and back once it is up.
+const WIDEN_MARGIN: f64 = 0.3;
+/// Change of width at which a step out or back is lifted as high as a walking step, m: a
+/// standing walker's feet otherwise stay on the ground.
+const WIDEN_LIFT: f64 = 0.05;
 
 struct Gait<'a> {
     plan: Plan<'a>,
     hip_width: f64,
     ankle_height: f64,
+    /// Each reach's time span, margins included, and how much wider each foot stands for it.
+    squats: Vec<(f64, f64, f64)>,
 }
 
 /// +1 for the left side (0), -1 for the right (1).
@@ -492,9 +503,16 @@ impl Gait<'_> {
         let t = self.plan.time_of_phase(mid);
         let (pos, yaw) = self.plan.root(t);
         let c = self.plan.schedule.at(t);
-        let width = self.hip_width + STANCE_WIDEN + 0.25 * c.lateral.abs() * 2.0 / c.step_frequency;
+        let stance = |phase: f64| self.plan.time_of_phase(phase + Self::offset(side));
+        let widen = self.widening(stance(k as f64 + SWING_FRACTION), stance(k as f64 + 1.0));
+        let width = self.hip_width + STANCE_WIDEN + 0.25 * c.lateral.abs() * 2.0 / c.step_frequency + widen;
         let ankle = pos + yaw_quat(yaw) * DVec3::new(0.0, side_sign(side) * width, 0.0) + DVec3::Z * self.ankle_height;
-        Footprint { ankle, yaw }
+        Footprint { ankle, yaw, widen }
+    }
+
+    /// How much wider each foot stands for the squats of reaches within `from..to`, m.
+    fn widening(&self, from: f64, to: f64) -> f64 {
+        self.squats.iter().filter(|&&(start, end, _)| start < to && from < end).map(|s| s.2).fold(0.0, f64::max)
     }
 
     /// Ankle position and foot heading of a foot at time `t`.
@@ -516,11 +534,12 @@ impl Gait<'_> {
         let (root, yaw) = self.plan.root(t);
         let to_local = |p: DVec3| yaw_quat(-yaw) * (p - root);
         let bump = (PI * s).sin();
-        let activity = self.plan.schedule.at(t).activity();
+        let stepping_out = ((b.widen - a.widen).abs() / WIDEN_LIFT).min(1.0);
+        let lift = self.plan.schedule.at(t).activity().max(stepping_out);
         let local = to_local(a.ankle).lerp(to_local(b.ankle), ease)
-            + DVec3::new(0.0, side_sign(side) * SWING_OUT * activity * bump, 0.0);
+            + DVec3::new(0.0, side_sign(side) * SWING_OUT * lift * bump, 0.0);
         let mut ankle = root + yaw_quat(yaw) * local;
-        ankle.z += self.plan.schedule.step_height * activity * bump;
+        ankle.z += self.plan.schedule.step_height * lift * bump;
         let foot_yaw = a.yaw + flowmimic_geom::wrap_angle(b.yaw - a.yaw) * ease;
         (ankle, foot_yaw)
     }
@@ -562,8 +581,12 @@ fn landmarks_aimed(schedule: &Schedule, aim: &[DVec3]) -> Result<LandmarkClip, M
     let off = rest_offset;
     let (thigh, shin) = (off(body::L_KNEE).length(), off(body::L_ANKLE).length());
     let ankle_height = ankle_height();
-    let gait = Gait { plan: Plan::new(schedule), hip_width: off(body::L_HIP).y, ankle_height };
-    let planned: Vec<(DVec3, Bend)> = schedule.reaches.iter().map(|r| planned_reach(&gait.plan, r)).collect();
+    let plan = Plan::new(schedule);
+    let planned: Vec<(DVec3, Bend)> = schedule.reaches.iter().map(|r| planned_reach(&plan, r)).collect();
+    let squats = (schedule.reaches.iter().zip(&planned))
+        .map(|(r, (_, bend))| (r.start - WIDEN_MARGIN, r.end() + WIDEN_MARGIN, reach::stance_widening(bend.drop)))
+        .collect();
+    let gait = Gait { plan, hip_width: off(body::L_HIP).y, ankle_height, squats };
     let frames = (schedule.duration * CONTROL_HZ).round() as usize + 1;
     let poses = (0..frames)
         .map(|i| {

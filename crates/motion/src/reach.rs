@@ -44,6 +44,10 @@ const HAND_SPEED: f64 = 2.0;
 /// 0.68-0.70 m (docs/data.md, "A shallower squat").
 pub const MAX_LEAN: f64 = 1.2;
 pub const MAX_DROP: f64 = 0.2;
+/// How much wider each foot stands in a full squat ([`MAX_DROP`]), m: a person squats with the
+/// feet apart. Squats held with the feet 0.22 m apart, as a walker stands, were where 38% of an
+/// expert's falls under kicks came from (docs/tracking.md, "Where the kicks fell it").
+pub const SQUAT_WIDEN: f64 = 0.1;
 /// Seconds over which the walk slows before a reach and speeds up after it.
 const SLOWING: f64 = 1.0;
 /// How far the hips go back per unit of lean's sine (away from the target), m, and per metre
@@ -180,6 +184,11 @@ impl Reaching {
     }
 }
 
+/// How much wider than a walker's each foot stands for a bend that drops the pelvis by `drop`, m.
+pub fn stance_widening(drop: f64) -> f64 {
+    SQUAT_WIDEN * drop / MAX_DROP
+}
+
 /// Whether a standing walker reaches the target of `r` from some bend.
 pub fn reachable(r: &Reach) -> bool {
     let target = r.target(DVec3::ZERO, 0.0);
@@ -251,16 +260,17 @@ impl Trunk {
 /// the heel or the toe off the ground).
 const MAX_SHIN_TILT: f64 = 0.7;
 
-/// Whether the legs hold a bent trunk with the feet planted where an upright walker stands: the
-/// hips within the legs' reach of the ankles, the shins within [`MAX_SHIN_TILT`].
-fn legs_hold(upright: &Trunk, bent: &Trunk) -> bool {
+/// Whether the legs hold a bent trunk with the feet planted where an upright walker stands,
+/// each `widen` further out: the hips within the legs' reach of the ankles, the shins within
+/// [`MAX_SHIN_TILT`].
+fn legs_hold(upright: &Trunk, bent: &Trunk, widen: f64) -> bool {
     let (thigh, shin) = (offset(body::L_KNEE).length(), offset(body::L_ANKLE).length());
     let hip = offset(body::L_HIP);
     let ankle_height = ankle_height();
     let forward = upright.pelvis_rot * DVec3::X;
     [1.0, -1.0].into_iter().all(|sign| {
         let side = DVec3::new(0.0, sign * hip.y, 0.0);
-        let mut ankle = upright.pelvis + upright.pelvis_rot * side;
+        let mut ankle = upright.pelvis + upright.pelvis_rot * DVec3::new(0.0, sign * (hip.y + widen), 0.0);
         ankle.z = ankle_height;
         let hip = bent.pelvis + bent.pelvis_rot * (side + DVec3::Z * hip.z);
         if hip.distance(ankle) > 0.98 * (thigh + shin) {
@@ -293,7 +303,7 @@ pub fn bend_for(target: DVec3, side: usize, trunk: impl Fn(Bend) -> Trunk) -> (B
             let bend =
                 Bend { lean: MAX_LEAN * i as f64 / leans as f64, toward, drop: MAX_DROP * j as f64 / drops as f64 };
             let bent = trunk(bend);
-            if !legs_hold(&upright, &bent) {
+            if !legs_hold(&upright, &bent, stance_widening(bend.drop)) {
                 continue;
             }
             let miss = (bent.shoulder(side).distance(target) - reach).max(0.0);

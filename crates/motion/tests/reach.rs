@@ -1,5 +1,6 @@
 //! Reaching in generated walks, checked on many random clips: during each hold the reference
-//! hand is on its target, the walk slows, the torso leans and the knees bend for low targets,
+//! hand is on its target, the walk slows, the torso leans and the knees bend for low targets
+//! with the feet stepped apart,
 //! the arm never passes through the torso (the simulator's own collision detection on the
 //! reference poses), the weight stays over the feet when standing, and the walking invariants
 //! still hold.
@@ -87,6 +88,13 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
             let mid = &clip.bodies[(*hold.start() + *hold.end()) / 2];
             let tilt = (mid.rot[body::CHEST] * flowmimic_geom::DVec3::Z).z.acos().to_degrees();
             lowest_pelvis = lowest_pelvis.min(mid.pos[body::PELVIS].z);
+            // A deep squat stands wide: the feet step out before the pelvis drops (walking, they
+            // are 0.22 m apart).
+            let lateral = (mid.rot[body::PELVIS] * flowmimic_geom::DVec3::Y).truncate();
+            let apart = (mid.pos[body::L_ANKLE] - mid.pos[body::R_ANKLE]).truncate().dot(lateral);
+            if mid.pos[body::PELVIS].z < reach::PELVIS_HEIGHT - 0.5 * reach::MAX_DROP {
+                assert!(apart > 0.3, "{what}: squatting with the feet {apart:.2} m apart");
+            }
             if r.height < 0.6 {
                 assert!(
                     tilt > 20.0 && mid.pos[body::PELVIS].z < 0.85,
