@@ -93,11 +93,11 @@ pub enum MotionCommand {
         duration: f64,
         /// Wandering walks whose hands reach for targets (reach_1, ...), beside 30 s of standing
         /// reaches (reach_stand) when there are any; none with --walking-only.
-        #[arg(long, default_value_t = 4)]
+        #[arg(long, default_value_t = flowmimic_motion::corpus::REACHING_WALKS)]
         reaching: usize,
         /// Walks of transitions (transitions_1, ...: reversals, stops and starts, sidesteps,
         /// turns on the spot); none with --walking-only.
-        #[arg(long, default_value_t = 2)]
+        #[arg(long, default_value_t = flowmimic_motion::corpus::TRANSITION_WALKS)]
         transitions: usize,
         /// Folder of captures to import (relative paths also from the checkout; skipped with a
         /// note when it does not exist).

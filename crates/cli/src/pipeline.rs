@@ -63,7 +63,8 @@ fn stage(name: &str, dir: &Path, key: String, work: impl FnOnce() -> Result<()>)
 pub struct PipelineConfig {
     /// `walk`: the generated 10 s straight walk; `walking-corpus`: `flowmimic motion corpus
     /// --walking-only` (4 wandering walks of 40 s, the backward walk and the walking captures of
-    /// `../shared/data/mocap`).
+    /// `../shared/data/mocap`); `generated`: the corpus's generated clips (the wandering walks,
+    /// the backward walk, 4 reaching walks and the standing reaches, 2 walks of transitions).
     pub clips: ClipSource,
     /// `each`: one expert per clip; `one`: one policy over every clip (`experts/all`).
     pub experts: Experts,
@@ -85,6 +86,7 @@ pub struct PipelineConfig {
 pub enum ClipSource {
     Walk,
     WalkingCorpus,
+    Generated,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -130,16 +132,21 @@ const ALL: &str = "all";
 /// clips an earlier run left in `dir` (whose experts stay where they are, unused).
 fn clips(humanoid: &Arc<Humanoid>, files: &[PathBuf], source: ClipSource, dir: &Path) -> Result<()> {
     let clips = match source {
-        ClipSource::WalkingCorpus if files.is_empty() => None,
+        ClipSource::WalkingCorpus | ClipSource::Generated if files.is_empty() => None,
         _ => Some(crate::track::load_clips(humanoid, files)?),
     };
     for old in clip_files(dir).unwrap_or_default() {
         std::fs::remove_file(&old).with_context(|| format!("removing {}", old.display()))?;
     }
     let Some(clips) = clips else {
-        let mocap = Some(crate::paths::resolve(Path::new(crate::paths::MOCAP)));
         let (walks, duration) = (corpus::WANDERING_WALKS, corpus::WANDERING_SECONDS);
-        let params = CorpusParams { walks, duration, reaching: 0, transitions: 0, mocap, walking_only: true };
+        let params = if source == ClipSource::Generated {
+            let (reaching, transitions) = (corpus::REACHING_WALKS, corpus::TRANSITION_WALKS);
+            CorpusParams { walks, duration, reaching, transitions, mocap: None, walking_only: false }
+        } else {
+            let mocap = Some(crate::paths::resolve(Path::new(crate::paths::MOCAP)));
+            CorpusParams { walks, duration, reaching: 0, transitions: 0, mocap, walking_only: true }
+        };
         return crate::motion::corpus(humanoid, params, dir).map(drop);
     };
     for clip in &clips {

@@ -27,6 +27,10 @@ pub fn backward_walk() -> GaitParams {
 pub const WANDERING_WALKS: usize = 4;
 pub const WANDERING_SECONDS: f64 = 40.0;
 
+/// The corpus's reaching walks and walks of transitions by default.
+pub const REACHING_WALKS: usize = 4;
+pub const TRANSITION_WALKS: usize = 2;
+
 /// Share of the time a hand is out in the corpus's reaching walks (`reach_<seed>`), and in its
 /// standing reaches (`reach_stand`).
 pub const REACH_SHARE: f64 = 0.6;
