@@ -12,10 +12,11 @@
 //! cuts across the other leg). A footprint is placed where its hip will be at the middle of that
 //! stance, widened by a quarter of the sideways travel of a gait cycle so that a sidestep's
 //! closing foot stays clear of the other, and around a reach that squats by
-//! [`reach::SQUAT_WIDEN`] per full squat (the feet step out before it and back after it). The pelvis bobs twice per gait cycle and sways toward
-//! the stance foot, the legs are solved with two-bone IK (knees point along the foot), the trunk
-//! and arms are built in the heading frame (the arms swing opposite to the legs). The result is a
-//! set of landmarks, retargeted by the same code as captured motion.
+//! [`reach::SQUAT_WIDEN`] per full squat (the feet step out before it and back after it). The
+//! pelvis bobs twice per gait cycle and sways toward the stance foot, the legs are solved with
+//! two-bone IK (knees point along the foot), the trunk and arms are built in the heading frame
+//! (the arms swing opposite to the legs). The result is a set of landmarks, retargeted by the
+//! same code as captured motion.
 //!
 //! With [`Reaching`], hands also reach for targets and back while the walker slows
 //! ([`crate::reach`]).

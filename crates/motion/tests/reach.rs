@@ -90,9 +90,9 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
             lowest_pelvis = lowest_pelvis.min(mid.pos[body::PELVIS].z);
             // A deep squat stands wide: the feet step out before the pelvis drops (walking, they
             // are 0.22 m apart).
-            let lateral = (mid.rot[body::PELVIS] * flowmimic_geom::DVec3::Y).truncate();
-            let apart = (mid.pos[body::L_ANKLE] - mid.pos[body::R_ANKLE]).truncate().dot(lateral);
             if mid.pos[body::PELVIS].z < reach::PELVIS_HEIGHT - 0.5 * reach::MAX_DROP {
+                let lateral = (mid.rot[body::PELVIS] * flowmimic_geom::DVec3::Y).truncate();
+                let apart = (mid.pos[body::L_ANKLE] - mid.pos[body::R_ANKLE]).truncate().dot(lateral);
                 assert!(apart > 0.3, "{what}: squatting with the feet {apart:.2} m apart");
             }
             if r.height < 0.6 {
