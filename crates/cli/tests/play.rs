@@ -178,14 +178,44 @@ impl Page {
             .clone()
     }
 
-    /// A left click on the ground at world `(x, y)`, where the page draws it.
+    /// A left click on the ground at world `(x, y)`, where the page draws it, which must be on
+    /// the canvas and not under a panel.
     fn click_ground(&mut self, x: f64, y: f64) {
-        let at = self.eval(&format!("play.screenOf([{x}, {y}, 0])"));
+        let at = self.eval(&format!(
+            "(() => {{ const s = play.screenOf([{x}, {y}, 0]), e = document.elementFromPoint(s[0], s[1]); \
+             return [s[0], s[1], e && e.id]; }})()"
+        ));
         let (px, py) = (at[0].as_f64().unwrap(), at[1].as_f64().unwrap());
+        assert_eq!(at[2], json!("gl"), "({x:.2}, {y:.2}) shows at pixel ({px:.0}, {py:.0}), not on the open canvas");
         for kind in ["mouseMoved", "mousePressed", "mouseReleased"] {
             let params = json!({"type": kind, "x": px, "y": py, "button": "left", "clickCount": 1});
             self.call("Input.dispatchMouseEvent", params);
         }
+    }
+
+    /// Orbits the camera by dragging the mouse across the canvas, as a user does, until it looks
+    /// along `heading` (rad): the page turns the view 0.008 rad per pixel dragged.
+    fn look_along(&mut self, heading: f64) {
+        let yaw = self.eval("cam.yaw").as_f64().unwrap();
+        let turn = (yaw - heading - std::f64::consts::PI).rem_euclid(std::f64::consts::TAU);
+        let pixels = (if turn > std::f64::consts::PI { turn - std::f64::consts::TAU } else { turn }) / 0.008;
+        if pixels.abs() < 4.0 {
+            return; // a shorter drag is a click
+        }
+        // From the middle of the page, where the humanoid stands on the canvas.
+        let centre = self
+            .eval("[innerWidth / 2, innerHeight / 2, document.elementFromPoint(innerWidth / 2, innerHeight / 2).id]");
+        assert_eq!(centre[2], json!("gl"), "the middle of the page is not the canvas");
+        let (x, y) = (centre[0].as_f64().unwrap(), centre[1].as_f64().unwrap());
+        let mut mouse = |kind: &str, dx: f64| {
+            let params = json!({"type": kind, "x": x + dx, "y": y, "button": "left", "clickCount": 1});
+            self.call("Input.dispatchMouseEvent", params);
+        };
+        mouse("mousePressed", 0.0);
+        for i in 1..=10 {
+            mouse("mouseMoved", pixels * f64::from(i) / 10.0);
+        }
+        mouse("mouseReleased", pixels);
     }
 
     fn key(&mut self, kind: &str, code: &str, key: &str, vk: u32) {
@@ -309,6 +339,8 @@ fn live_play_steers_from_a_real_browser() {
     let [x0, y0, yaw] = [0, 1, 2].map(|i| start[i].as_f64().unwrap());
     let ahead = |d: f64| (x0 + d * yaw.cos(), y0 + d * yaw.sin());
     let ((gx, gy), (ox, oy)) = (ahead(6.0), ahead(2.5));
+    // From the default view the ground 6 m ahead can fall under the settings panel.
+    page.look_along(yaw);
     page.eval("$('clickmode').value = 'waypoint'");
     page.click_ground(gx, gy);
     assert!(page.wait_for("play.frame.waypoint !== null", 3.0), "the waypoint click was not applied");
