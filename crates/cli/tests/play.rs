@@ -235,6 +235,38 @@ impl Page {
         false
     }
 
+    /// Simulated seconds from now until the walker's achieved `axis` speed (0 forward, 1 left),
+    /// averaged over the last 0.5 s of streamed frames, is below `below` m/s; `None` when it is
+    /// not within `limit` s.
+    fn seconds_until_slower(&mut self, axis: usize, below: f64, limit: f64) -> Option<f64> {
+        let start = self.eval("play.frame.time").as_f64().unwrap();
+        let mut recent: Vec<(f64, f64)> = Vec::new();
+        loop {
+            let f = self.eval(&format!("[play.frame.time, play.frame.velocity[{axis}]]"));
+            let (t, v) = (f[0].as_f64().unwrap() - start, f[1].as_f64().unwrap());
+            if t > limit {
+                return None;
+            }
+            recent.push((t, v));
+            recent.retain(|&(s, _)| s > t - 0.5);
+            if t >= 0.5 && recent.iter().map(|&(_, v)| v).sum::<f64>() / (recent.len() as f64) < below {
+                return Some(t);
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// The mean achieved `axis` speed (0 forward, 1 left; m/s) over `seconds` of streamed frames.
+    fn mean_velocity(&mut self, axis: usize, seconds: f64) -> f64 {
+        let start = Instant::now();
+        let mut speeds = Vec::new();
+        while start.elapsed().as_secs_f64() < seconds {
+            speeds.push(self.eval(&format!("play.frame.velocity[{axis}]")).as_f64().unwrap());
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        speeds.iter().sum::<f64>() / speeds.len() as f64
+    }
+
     /// Over `seconds` of streamed frames, the mean achieved forward speed and the mean forward
     /// speed of the predicted pelvis path (the sampled plan the page draws), both m/s.
     fn mean_speeds(&mut self, seconds: f64) -> (f64, f64) {
@@ -256,7 +288,8 @@ impl Page {
 }
 
 /// Headless Chromium on the page: the page renders and streams, offers the inverse-dynamics
-/// share, W walks forward and S backward, R resets, and a clicked obstacle is walked around.
+/// share, W walks forward and S backward within 1.5 s of the key, D is measured, R resets, and a
+/// clicked obstacle is walked around.
 #[test]
 fn live_play_steers_from_a_real_browser() {
     let Some(browser) = chromium() else {
@@ -313,19 +346,34 @@ fn live_play_steers_from_a_real_browser() {
     let (forward, forward_plan) = page.mean_speeds(3.0);
     page.key("keyUp", "KeyW", "w", 87);
     page.key("keyDown", "KeyS", "s", 83);
+    // From the key press, the simulated time until the walker walks back (a 0.5 s mean below
+    // -0.1 m/s).
+    let reversed = page.seconds_until_slower(0, -0.1, 4.0);
     assert!(page.wait_for("play.frame.command[0] === -0.6", 2.0), "S was not applied");
     let s_latency = page.eval("play.latencyMs");
     page.mean_speeds(1.0);
     let (backward, backward_plan) = page.mean_speeds(3.0);
+    // D: a sidestep right at 0.3 m/s, measured and printed, not asserted: the shipped model's
+    // data hardly sidesteps (issue 46).
+    page.key("keyUp", "KeyS", "s", 83);
+    page.key("keyDown", "KeyD", "d", 68);
+    let sidestepped = page.seconds_until_slower(1, -0.1, 3.0);
+    let sideways = page.mean_velocity(1, 1.5);
+    page.key("keyUp", "KeyD", "d", 68);
+    page.key("keyDown", "KeyS", "s", 83);
     let budget = page.eval("[play.frame.model_ms, play.frame.physics_ms, play.frame.rate]");
     eprintln!(
         "key -> applied: W {w_latency} ms, S {s_latency} ms; forward speed achieved / planned: \
          W {forward:.2} / {forward_plan:.2} m/s, S {backward:.2} / {backward_plan:.2} m/s; \
-         last step: model, physics ms, steps in the last second {budget}"
+         walking back {reversed:?} s after S, sidestepping right {sidestepped:?} s after D (then {sideways:.2} m/s for -0.3 asked); last step: model, physics ms, steps in the last \
+         second {budget}"
     );
     // The guidance model with a fifth of inverse dynamics walks back on S (measured here: W 0.91,
     // S -0.57 m/s for -0.6 asked; without inverse dynamics W 0.69, S -0.18). R restarts.
     assert!(forward > 0.5 && backward < -0.3, "W: {forward:.2} m/s, S: {backward:.2} m/s");
+    // The joystick issue's bar: walking back within 1.5 s of S from a forward walk (measured
+    // here: 0.97-1.23 s in 8 runs).
+    assert!(reversed.is_some_and(|t| t <= 1.5), "walking back {reversed:?} s after S");
     let before = page.eval("play.frame.time").as_f64().unwrap();
     page.key("keyDown", "KeyR", "r", 82);
     assert!(page.wait_for(&format!("play.frame.time < {before} - 1"), 2.0), "R did not reset");
