@@ -188,17 +188,21 @@ impl Page {
         let (px, py) = (at[0].as_f64().unwrap(), at[1].as_f64().unwrap());
         assert_eq!(at[2], json!("gl"), "({x:.2}, {y:.2}) shows at pixel ({px:.0}, {py:.0}), not on the open canvas");
         for kind in ["mouseMoved", "mousePressed", "mouseReleased"] {
-            let params = json!({"type": kind, "x": px, "y": py, "button": "left", "clickCount": 1});
-            self.call("Input.dispatchMouseEvent", params);
+            self.mouse(kind, px, py);
         }
+    }
+
+    /// One mouse event of the left button at page pixel `(x, y)`.
+    fn mouse(&mut self, kind: &str, x: f64, y: f64) {
+        let params = json!({"type": kind, "x": x, "y": y, "button": "left", "clickCount": 1});
+        self.call("Input.dispatchMouseEvent", params);
     }
 
     /// Orbits the camera by dragging the mouse across the canvas, as a user does, until it looks
     /// along `heading` (rad): the page turns the view 0.008 rad per pixel dragged.
     fn look_along(&mut self, heading: f64) {
         let yaw = self.eval("cam.yaw").as_f64().unwrap();
-        let turn = (yaw - heading - std::f64::consts::PI).rem_euclid(std::f64::consts::TAU);
-        let pixels = (if turn > std::f64::consts::PI { turn - std::f64::consts::TAU } else { turn }) / 0.008;
+        let pixels = flowmimic_geom::wrap_angle(yaw - heading - std::f64::consts::PI) / 0.008;
         if pixels.abs() < 4.0 {
             return; // a shorter drag is a click
         }
@@ -207,15 +211,11 @@ impl Page {
             .eval("[innerWidth / 2, innerHeight / 2, document.elementFromPoint(innerWidth / 2, innerHeight / 2).id]");
         assert_eq!(centre[2], json!("gl"), "the middle of the page is not the canvas");
         let (x, y) = (centre[0].as_f64().unwrap(), centre[1].as_f64().unwrap());
-        let mut mouse = |kind: &str, dx: f64| {
-            let params = json!({"type": kind, "x": x + dx, "y": y, "button": "left", "clickCount": 1});
-            self.call("Input.dispatchMouseEvent", params);
-        };
-        mouse("mousePressed", 0.0);
+        self.mouse("mousePressed", x, y);
         for i in 1..=10 {
-            mouse("mouseMoved", pixels * f64::from(i) / 10.0);
+            self.mouse("mouseMoved", x + pixels * f64::from(i) / 10.0, y);
         }
-        mouse("mouseReleased", pixels);
+        self.mouse("mouseReleased", x + pixels, y);
     }
 
     fn key(&mut self, kind: &str, code: &str, key: &str, vk: u32) {
