@@ -11,20 +11,20 @@
 //! lifted `step_height` and bowed outward, carried along in the turning root frame so it never
 //! cuts across the other leg). A footprint is placed where its hip will be at the middle of that
 //! stance, widened by a quarter of the sideways travel of a gait cycle so that a sidestep's
-//! closing foot stays clear of the other, and around a reach that squats by
+//! closing foot stays clear of the other, and around reaches that squat by
 //! [`reach::SQUAT_WIDEN`] per full squat (the feet step out before it and back after it). The
 //! pelvis bobs twice per gait cycle and sways toward the stance foot, the legs are solved with
 //! two-bone IK (knees point along the foot), the trunk and arms are built in the heading frame
 //! (the arms swing opposite to the legs). The result is a set of landmarks, retargeted by the
 //! same code as captured motion.
 //!
-//! With [`Reaching`], hands also reach for targets and back while the walker slows
+//! With [`Reaching`], hands also reach for targets and back while the walker stops
 //! ([`crate::reach`]).
 
 use crate::MotionError;
 use crate::clip::Clip;
 use crate::landmarks::{LandmarkClip, NUM_LANDMARKS, Pose};
-use crate::reach::{self, Bend, HOLD_SPEED, HOLD_TURN, PELVIS_HEIGHT, Reach, Reaching, Trunk};
+use crate::reach::{self, Bend, PELVIS_HEIGHT, Reach, Reaching, Trunk};
 use crate::retarget::{RetargetReport, retarget};
 use flowmimic_geom::{DVec3, yaw_quat};
 use flowmimic_sim::skeleton::{Shape, bodies, body};
@@ -352,7 +352,7 @@ const BLEND: f64 = 1.0;
 
 impl Schedule {
     /// The command at time `t`: the last key's, blended in from the one before over [`BLEND`],
-    /// slowed toward [`HOLD_SPEED`] and [`HOLD_TURN`] around a reach's hold.
+    /// slowed to a standstill around each reach.
     pub fn at(&self, t: f64) -> Command {
         let k = self.keys.partition_point(|&(time, _)| time <= t).max(1) - 1;
         let (time, current) = self.keys[k];
@@ -366,10 +366,7 @@ impl Schedule {
         if slowing == 0.0 {
             return command;
         }
-        let speed = command.speed.hypot(command.lateral);
-        let scale = if speed > HOLD_SPEED { HOLD_SPEED / speed } else { 1.0 };
-        let turn = command.turn_rate.clamp(-HOLD_TURN, HOLD_TURN);
-        command.lerp(Command::walk(scale * command.speed, scale * command.lateral, turn), slowing)
+        command.lerp(Command::walk(0.0, 0.0, 0.0), slowing)
     }
 
     /// The reach under way at `t`, with how far out its hand is.
@@ -473,18 +470,21 @@ struct Footprint {
     widen: f64,
 }
 
-/// Seconds before a reach starts and after it ends during which the feet stand wide for its
-/// squat: they step out before the pelvis drops and back once it is up.
+/// Seconds before a wide stance starts and after it ends during which the feet stand wide for
+/// its squats: they step out before the pelvis drops and back once it is up.
 const WIDEN_MARGIN: f64 = 0.3;
-/// Change of width at which a step out or back is lifted as high as a walking step, m: a
-/// standing walker's feet otherwise stay on the ground.
-const WIDEN_LIFT: f64 = 0.05;
+/// How far a step goes at which it is lifted as high as a walking step, m, where the walk's own
+/// lift does not hold: a step out or back for a squat, and around a reach, the last steps as
+/// the walker comes to a standstill (the walk's lift falls to nothing before they land, and the
+/// feet would slide).
+const STEP_LIFT: f64 = 0.05;
 
 struct Gait<'a> {
     plan: Plan<'a>,
     hip_width: f64,
     ankle_height: f64,
-    /// Each reach's time span, margins included, and how much wider each foot stands for it.
+    /// Each wide stance's time span, margins included, and how much wider each foot stands for
+    /// its deepest squat (0 for reaches without one).
     squats: Vec<(f64, f64, f64)>,
 }
 
@@ -536,8 +536,9 @@ impl Gait<'_> {
         let (root, yaw) = self.plan.root(t);
         let to_local = |p: DVec3| yaw_quat(-yaw) * (p - root);
         let bump = (PI * s).sin();
-        let stepping_out = ((b.widen - a.widen).abs() / WIDEN_LIFT).min(1.0);
-        let lift = self.plan.schedule.at(t).activity().max(stepping_out);
+        let around_reach = self.squats.iter().any(|&(from, to, _)| (from..=to).contains(&t));
+        let way = if around_reach { a.ankle.distance(b.ankle) } else { (b.widen - a.widen).abs() };
+        let lift = self.plan.schedule.at(t).activity().max((way / STEP_LIFT).min(1.0));
         let local = to_local(a.ankle).lerp(to_local(b.ankle), ease)
             + DVec3::new(0.0, side_sign(side) * SWING_OUT * lift * bump, 0.0);
         let mut ankle = root + yaw_quat(yaw) * local;
@@ -585,8 +586,12 @@ fn landmarks_aimed(schedule: &Schedule, aim: &[DVec3]) -> Result<LandmarkClip, M
     let ankle_height = ankle_height();
     let plan = Plan::new(schedule);
     let planned: Vec<(DVec3, Bend)> = schedule.reaches.iter().map(|r| planned_reach(&plan, r)).collect();
-    let squats = (schedule.reaches.iter().zip(&planned))
-        .map(|(r, (_, bend))| (r.start - WIDEN_MARGIN, r.end() + WIDEN_MARGIN, reach::stance_widening(bend.drop)))
+    let squats = reach::wide_stances(&schedule.reaches)
+        .iter()
+        .map(|stance| {
+            let deepest = planned[stance.reaches.clone()].iter().map(|(_, bend)| bend.drop).fold(0.0, f64::max);
+            (stance.start - WIDEN_MARGIN, stance.end + WIDEN_MARGIN, reach::stance_widening(deepest))
+        })
         .collect();
     let gait = Gait { plan, hip_width: off(body::L_HIP).y, ankle_height, squats };
     let frames = (schedule.duration * CONTROL_HZ).round() as usize + 1;

@@ -1,9 +1,10 @@
-//! Reaching in generated walks: a hand goes to a target and back while the walker slows down;
+//! Reaching in generated walks: a hand goes to a target and back while the walker stops;
 //! the torso leans and the knees bend for targets low or far, so that the arm gets there.
 //!
 //! A [`Reach`] is drawn relative to the walker (which hand, how high, how far out from the
 //! shoulder, toward which side) and placed in the world at the middle of its hold, where the
-//! hand then stays while the walker creeps on at most [`HOLD_SPEED`]. The pose of the upper body
+//! hand then stays while the walker stands, feet planted (apart for a squat, and kept apart
+//! between reaches close in time: a [`WideStance`]). The pose of the upper body
 //! is a [`Trunk`]: the walking generator's pelvis and chest, bent toward the target by a
 //! [`Bend`]. The bend is the smallest (lean and crouch weighed together) from which the arm,
 //! a two-bone chain from the shoulder to the hand, reaches the target with room to spare.
@@ -15,11 +16,8 @@ use flowmimic_sim::skeleton::body;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 use std::f64::consts::FRAC_PI_2;
+use std::ops::Range;
 
-/// Fastest walk and turn while a hand is out, m/s and rad/s: the target stays in reach (at
-/// most 0.08 m of drift over the longest hold).
-pub const HOLD_SPEED: f64 = 0.05;
-pub const HOLD_TURN: f64 = 0.05;
 /// Target heights above the ground, m, and horizontal distances from the shoulder, m. A third
 /// of the heights are drawn below [`LOW`] and the rest above [`HIGH`] (of the 51 targets in the
 /// reach test's clips, 31% below 0.9 m, 69% above 1.1 m, 25% above 1.4 m): a hand high up or
@@ -50,15 +48,20 @@ pub const MAX_DROP: f64 = 0.2;
 pub const SQUAT_WIDEN: f64 = 0.1;
 /// Seconds over which the walk slows before a reach and speeds up after it.
 const SLOWING: f64 = 1.0;
+/// Seconds the walker stands before a hand moves and after it is back: a step is placed under
+/// the hips at the middle of its stance, so the last step lands up to 0.7 of a gait cycle
+/// after the walk stops and the first lifts as long before it starts (0.93 s at the slowest
+/// cadence), and a hand takes 0.4 s at the least between moving and holding.
+const SETTLE: f64 = 0.6;
 /// How far the hips go back per unit of lean's sine (away from the target), m, and per metre
 /// of drop (behind the heels): a person leaning or crouching pushes the hips back to keep the
 /// weight over the feet, and the shins stay within the ankles' range.
 const HIPS_BACK: f64 = 0.12;
 const SQUAT_BACK: f64 = 0.25;
-/// Reach the arm is planned for, as a share of its length, less a margin for the drift while
-/// holding (m): the elbow stays bent and the hand on target as the walker creeps.
+/// Reach the arm is planned for, as a share of its length, less a margin (m): the elbow stays
+/// bent, with room for a tracking policy's errors.
 const ARM_SHARE: f64 = 0.97;
-const DRIFT_MARGIN: f64 = 0.05;
+const ARM_MARGIN: f64 = 0.05;
 
 /// One reach of a hand, in the walker's heading frame at the middle of its hold.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -97,15 +100,16 @@ impl Reach {
         self.hold_end() + self.back
     }
 
+    /// How much the walk is slowed at `t` (1: standing): over a second up to [`SETTLE`] before
+    /// the hand moves, and over a second from [`SETTLE`] after it is back.
+    pub fn slowing(&self, t: f64) -> f64 {
+        let (stopped, starting) = (self.start - SETTLE, self.end() + SETTLE);
+        smoothstep((t - stopped + SLOWING) / SLOWING).min(smoothstep((starting + SLOWING - t) / SLOWING))
+    }
+
     /// How far the hand is out at `t`: 0 before and after, 1 while holding, eased between.
     pub fn weight(&self, t: f64) -> f64 {
         smoothstep((t - self.start) / self.approach).min(smoothstep((self.end() - t) / self.back))
-    }
-
-    /// How much the walk is slowed at `t` (1: to [`HOLD_SPEED`]): over a second before the
-    /// hand moves and a second after it is back, so that the walker bends from short steps.
-    pub fn slowing(&self, t: f64) -> f64 {
-        smoothstep((t - self.start + SLOWING) / SLOWING).min(smoothstep((self.end() + SLOWING - t) / SLOWING))
     }
 
     /// The target relative to the standing shoulder, in the heading frame (height absolute).
@@ -129,6 +133,34 @@ impl Reach {
         t.z = self.height;
         t
     }
+}
+
+/// A stretch over which the feet stand apart for the squats of one or more reaches in a row:
+/// from the first one's start to the last one's end, s. Reaches whose slowing overlaps share
+/// one: the walk does not get back to speed between them, and the feet would step in from one
+/// squat and out again for the next (four steps in 3.5 s where an expert fell, docs/data.md,
+/// "Feet planted while a hand is out").
+#[derive(Clone, Debug, PartialEq)]
+pub struct WideStance {
+    pub start: f64,
+    pub end: f64,
+    /// The reaches it holds, indices into the schedule's.
+    pub reaches: Range<usize>,
+}
+
+/// The wide stances of reaches given in time order.
+pub fn wide_stances(reaches: &[Reach]) -> Vec<WideStance> {
+    let mut out: Vec<WideStance> = Vec::new();
+    for (i, r) in reaches.iter().enumerate() {
+        match out.last_mut() {
+            Some(stance) if r.start - stance.end < 2.0 * (SLOWING + SETTLE) => {
+                stance.end = r.end();
+                stance.reaches.end = i + 1;
+            }
+            _ => out.push(WideStance { start: r.start, end: r.end(), reaches: i..i + 1 }),
+        }
+    }
+    out
 }
 
 /// How often hands reach in a generated clip, and the seed of their targets.
@@ -292,7 +324,7 @@ fn arm_bones() -> (f64, f64) {
 /// `trunk` builds the trunk for a bend.
 pub fn bend_for(target: DVec3, side: usize, trunk: impl Fn(Bend) -> Trunk) -> (Bend, f64) {
     let (upper, lower) = arm_bones();
-    let reach = ARM_SHARE * (upper + lower) - DRIFT_MARGIN;
+    let reach = ARM_SHARE * (upper + lower) - ARM_MARGIN;
     let upright = trunk(Bend::NONE);
     let heading_frame = upright.pelvis_rot.conjugate() * (target - upright.pelvis);
     let toward = heading_frame.y.atan2(heading_frame.x);
