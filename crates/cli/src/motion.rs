@@ -59,7 +59,7 @@ pub enum MotionCommand {
         /// m/s) or a turn on the spot (0.3-0.7 rad/s).
         #[arg(long, requires = "wander")]
         transitions: bool,
-        /// Hands reach for targets and back while the walk slows (a third 0.4-0.9 m high, with a
+        /// Hands reach for targets and back while the walker stops (a third 0.4-0.9 m high, with a
         /// squat and a stoop, the rest 1.1-1.7 m; 0.2-0.7 m out from the shoulder, ahead and to
         /// the side; out 0.4-1.0 s, held 0.3-1.5 s): the share of the time a hand is out, 0.5
         /// when given without a value.
