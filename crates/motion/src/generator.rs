@@ -485,7 +485,7 @@ struct Gait<'a> {
     ankle_height: f64,
     /// Each wide stance's time span, margins included, and how much wider each foot stands for
     /// its deepest squat (0 for reaches without one).
-    squats: Vec<(f64, f64, f64)>,
+    stances: Vec<(f64, f64, f64)>,
 }
 
 /// +1 for the left side (0), -1 for the right (1).
@@ -514,7 +514,7 @@ impl Gait<'_> {
 
     /// How much wider each foot stands for the squats of reaches within `from..to`, m.
     fn widening(&self, from: f64, to: f64) -> f64 {
-        self.squats.iter().filter(|&&(start, end, _)| start < to && from < end).map(|s| s.2).fold(0.0, f64::max)
+        self.stances.iter().filter(|&&(start, end, _)| start < to && from < end).map(|s| s.2).fold(0.0, f64::max)
     }
 
     /// Ankle position and foot heading of a foot at time `t`.
@@ -536,7 +536,7 @@ impl Gait<'_> {
         let (root, yaw) = self.plan.root(t);
         let to_local = |p: DVec3| yaw_quat(-yaw) * (p - root);
         let bump = (PI * s).sin();
-        let around_reach = self.squats.iter().any(|&(from, to, _)| (from..=to).contains(&t));
+        let around_reach = self.stances.iter().any(|&(from, to, _)| (from..=to).contains(&t));
         let way = if around_reach { a.ankle.distance(b.ankle) } else { (b.widen - a.widen).abs() };
         let lift = self.plan.schedule.at(t).activity().max((way / STEP_LIFT).min(1.0));
         let local = to_local(a.ankle).lerp(to_local(b.ankle), ease)
@@ -586,14 +586,14 @@ fn landmarks_aimed(schedule: &Schedule, aim: &[DVec3]) -> Result<LandmarkClip, M
     let ankle_height = ankle_height();
     let plan = Plan::new(schedule);
     let planned: Vec<(DVec3, Bend)> = schedule.reaches.iter().map(|r| planned_reach(&plan, r)).collect();
-    let squats = reach::wide_stances(&schedule.reaches)
+    let stances = reach::wide_stances(&schedule.reaches)
         .iter()
         .map(|stance| {
             let deepest = planned[stance.reaches.clone()].iter().map(|(_, bend)| bend.drop).fold(0.0, f64::max);
             (stance.start - WIDEN_MARGIN, stance.end + WIDEN_MARGIN, reach::stance_widening(deepest))
         })
         .collect();
-    let gait = Gait { plan, hip_width: off(body::L_HIP).y, ankle_height, squats };
+    let gait = Gait { plan, hip_width: off(body::L_HIP).y, ankle_height, stances };
     let frames = (schedule.duration * CONTROL_HZ).round() as usize + 1;
     let poses = (0..frames)
         .map(|i| {

@@ -1,9 +1,8 @@
 //! Reaching in generated walks, checked on many random clips: during each hold the reference
-//! hand is on its target, the walker stops with the feet planted, the torso leans and the knees bend for low targets
-//! with the feet stepped apart,
-//! the arm never passes through the torso (the simulator's own collision detection on the
-//! reference poses), the weight stays over the feet when standing, and the walking invariants
-//! still hold.
+//! hand is on its target, the walker stops with the feet planted, the torso leans and the knees
+//! bend for low targets with the feet stepped apart, the arm never passes through the torso (the
+//! simulator's own collision detection on the reference poses), the weight stays over the feet
+//! when standing, and the walking invariants still hold.
 
 mod common;
 
