@@ -54,6 +54,11 @@ fn reaching_clips(h: &Arc<Humanoid>) -> Vec<(Clip, Schedule, RetargetReport)> {
     clips
 }
 
+/// The frames whose times fall within `from..=to`, s.
+fn frames_within(from: f64, to: f64) -> std::ops::RangeInclusive<usize> {
+    (from * CONTROL_HZ).ceil() as usize..=(to * CONTROL_HZ).floor() as usize
+}
+
 #[test]
 fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
     let h = Humanoid::new(SimConfig::default()).unwrap();
@@ -71,7 +76,7 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
             assert!((reach::DISTANCES[0]..=reach::DISTANCES[1]).contains(&r.distance), "{what}");
             assert!((0.4..=1.0).contains(&r.approach) && (0.3..=1.5).contains(&r.hold), "{what}");
             let hand = [body::L_HAND, body::R_HAND][r.side];
-            let hold = (r.hold_start() * CONTROL_HZ).ceil() as usize..=(r.hold_end() * CONTROL_HZ).floor() as usize;
+            let hold = frames_within(r.hold_start(), r.hold_end());
             let mut worst = 0.0_f64;
             for t in hold.clone() {
                 let goal = report.placement.apply(t, *target);
@@ -115,7 +120,7 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
                 reaches.iter().map(|r| (r.hold_start(), r.hold_end())).collect()
             };
             for (from, to) in holds {
-                let frames = (from * CONTROL_HZ).ceil() as usize..=(to * CONTROL_HZ).floor() as usize;
+                let frames = frames_within(from, to);
                 for ankle in [body::L_ANKLE, body::R_ANKLE] {
                     let planted = clip.bodies[*frames.start()].pos[ankle];
                     let moved = frames.clone().map(|t| clip.bodies[t].pos[ankle].distance(planted)).fold(0.0, f64::max);
