@@ -64,7 +64,8 @@ pub struct PipelineConfig {
     /// `walk`: the generated 10 s straight walk; `walking-corpus`: `flowmimic motion corpus
     /// --walking-only` (4 wandering walks of 40 s, the backward walk and the walking captures of
     /// `../shared/data/mocap`); `generated`: the corpus's generated clips (the wandering walks,
-    /// the backward walk, 4 reaching walks and the standing reaches, 2 walks of transitions).
+    /// the backward walk, 4 reaching walks and the standing reaches, 2 walks of transitions);
+    /// `generated-walks`: those without the reaches.
     pub clips: ClipSource,
     /// `each`: one expert per clip; `one`: one policy over every clip (`experts/all`).
     pub experts: Experts,
@@ -87,6 +88,7 @@ pub enum ClipSource {
     Walk,
     WalkingCorpus,
     Generated,
+    GeneratedWalks,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -132,7 +134,7 @@ const ALL: &str = "all";
 /// clips an earlier run left in `dir` (whose experts stay where they are, unused).
 fn clips(humanoid: &Arc<Humanoid>, files: &[PathBuf], source: ClipSource, dir: &Path) -> Result<()> {
     let clips = match source {
-        ClipSource::WalkingCorpus | ClipSource::Generated if files.is_empty() => None,
+        ClipSource::WalkingCorpus | ClipSource::Generated | ClipSource::GeneratedWalks if files.is_empty() => None,
         _ => Some(crate::track::load_clips(humanoid, files)?),
     };
     for old in clip_files(dir).unwrap_or_default() {
@@ -140,12 +142,16 @@ fn clips(humanoid: &Arc<Humanoid>, files: &[PathBuf], source: ClipSource, dir: &
     }
     let Some(clips) = clips else {
         let (walks, duration) = (corpus::WANDERING_WALKS, corpus::WANDERING_SECONDS);
-        let params = if source == ClipSource::Generated {
-            let (reaching, transitions) = (corpus::REACHING_WALKS, corpus::TRANSITION_WALKS);
-            CorpusParams { walks, duration, reaching, transitions, mocap: None, walking_only: false }
-        } else {
-            let mocap = Some(crate::paths::resolve(Path::new(crate::paths::MOCAP)));
-            CorpusParams { walks, duration, reaching: 0, transitions: 0, mocap, walking_only: true }
+        let params = match source {
+            ClipSource::Generated | ClipSource::GeneratedWalks => {
+                let reaching = if source == ClipSource::Generated { corpus::REACHING_WALKS } else { 0 };
+                let transitions = corpus::TRANSITION_WALKS;
+                CorpusParams { walks, duration, reaching, transitions, mocap: None, walking_only: false }
+            }
+            _ => {
+                let mocap = Some(crate::paths::resolve(Path::new(crate::paths::MOCAP)));
+                CorpusParams { walks, duration, reaching: 0, transitions: 0, mocap, walking_only: true }
+            }
         };
         return crate::motion::corpus(humanoid, params, dir).map(drop);
     };

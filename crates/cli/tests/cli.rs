@@ -517,17 +517,26 @@ fn the_pipeline_runs_every_stage_then_skips_what_is_done() {
     for clip in ["wander_4", "walk_back", "02_01", "humanoid3d_walk"] {
         assert!(dir.join(format!("c/clips/{clip}.clip.safetensors")).exists(), "{clip}");
     }
-    // The generated clips, captures left out.
-    std::fs::write(dir.join("generated.toml"), "[pipeline]\nclips = \"generated\"\n").unwrap();
-    ok(&dir, &["--config", "generated.toml", "pipeline", "-o", "g", "--only", "clips"]);
-    let generated: Vec<String> = std::fs::read_dir(dir.join("g/clips"))
-        .unwrap()
-        .filter_map(|e| e.unwrap().file_name().to_str()?.strip_suffix(".clip.safetensors").map(String::from))
-        .collect();
+    // The generated clips, captures left out; and those without the reaches.
+    let generated = |source: &str| -> Vec<String> {
+        std::fs::write(dir.join("generated.toml"), format!("[pipeline]\nclips = \"{source}\"\n")).unwrap();
+        ok(&dir, &["--config", "generated.toml", "pipeline", "-o", source, "--only", "clips"]);
+        let mut names: Vec<String> = std::fs::read_dir(dir.join(source).join("clips"))
+            .unwrap()
+            .filter_map(|e| e.unwrap().file_name().to_str()?.strip_suffix(".clip.safetensors").map(String::from))
+            .collect();
+        names.sort();
+        names
+    };
+    let all = generated("generated");
     for clip in ["wander_4", "walk_back", "reach_4", "reach_stand", "transitions_2"] {
-        assert!(generated.iter().any(|g| g == clip), "{clip} not in {generated:?}");
+        assert!(all.iter().any(|g| g == clip), "{clip} not in {all:?}");
     }
-    assert_eq!(generated.len(), 12, "{generated:?}");
+    assert_eq!(all.len(), 12, "{all:?}");
+    let walks = generated("generated-walks");
+    let without_reaches: Vec<String> = all.iter().filter(|c| !c.starts_with("reach_")).cloned().collect();
+    assert_eq!(walks, without_reaches);
+    assert_eq!(walks.len(), 7, "{walks:?}");
     // Other model settings leave the stages before the model alone, and refuse to overwrite
     // the trained model.
     std::fs::write(dir.join("wider.toml"), "[model]\nd_model = 24\n").unwrap();
