@@ -142,12 +142,13 @@ fn clips(humanoid: &Arc<Humanoid>, files: &[PathBuf], source: ClipSource, dir: &
     }
     let Some(clips) = clips else {
         let (walks, duration) = (corpus::WANDERING_WALKS, corpus::WANDERING_SECONDS);
+        let generated = |reaching| {
+            let transitions = corpus::TRANSITION_WALKS;
+            CorpusParams { walks, duration, reaching, transitions, mocap: None, walking_only: false }
+        };
         let params = match source {
-            ClipSource::Generated | ClipSource::GeneratedWalks => {
-                let reaching = if source == ClipSource::Generated { corpus::REACHING_WALKS } else { 0 };
-                let transitions = corpus::TRANSITION_WALKS;
-                CorpusParams { walks, duration, reaching, transitions, mocap: None, walking_only: false }
-            }
+            ClipSource::Generated => generated(corpus::REACHING_WALKS),
+            ClipSource::GeneratedWalks => generated(0),
             _ => {
                 let mocap = Some(crate::paths::resolve(Path::new(crate::paths::MOCAP)));
                 CorpusParams { walks, duration, reaching: 0, transitions: 0, mocap, walking_only: true }
