@@ -79,6 +79,7 @@ pub struct PipelineConfig {
     pub init_iterations: usize,
     /// A model directory whose `recommended.toml` settings (its comments left out: they measure
     /// that model) the FM model gets, so that commands driving it without flags use them.
+    /// Changing them re-evaluates a finished model; it is not trained again.
     pub recommended: Option<PathBuf>,
 }
 
@@ -372,11 +373,6 @@ impl Stages<'_> {
         let config = self.config;
         let mut parts = vec![data_key.to_string(), json(&config.model), json(&config.train), objective.into()];
         parts.extend(fm.then(|| json(&config.inverse)));
-        let recommended = match (&config.pipeline.recommended, fm) {
-            (Some(file), true) => Some(recommended_settings(&crate::paths::resolve(file))?),
-            _ => None,
-        };
-        parts.extend(recommended.clone());
         let key = key(&parts);
         // A finished model made from other data or settings is the user's: never overwritten.
         if stamp_of(&dir).is_some_and(|k| k != key) {
@@ -386,17 +382,35 @@ impl Stages<'_> {
                 dir.display()
             );
         }
-        stage(&format!("train {objective}"), &dir, key, || {
+        let key = stage(&format!("train {objective}"), &dir, key, || {
             let resume = dir.join(flowmimic_model::train::CHECKPOINT_FILE).exists();
             crate::model::train(&data, objective, &dir, None, resume, config.model, config.train.clone())?;
             if fm {
                 crate::model::fit_inverse(std::slice::from_ref(&data), &dir, &config.inverse)?;
             }
-            if let Some(text) = &recommended {
-                flowmimic_io::write_atomic(&dir.join(flowmimic_control::recommended::FILE), text.as_bytes())?;
-            }
             Ok(())
-        })
+        })?;
+        if fm {
+            self.write_recommended()?;
+        }
+        Ok(key)
+    }
+
+    /// The `[pipeline] recommended` settings, copied beside the FM model. Outside the train
+    /// stage's key, so that editing them re-evaluates the model instead of refusing it.
+    fn recommended(&self) -> Result<Option<String>> {
+        let file = self.config.pipeline.recommended.as_deref();
+        file.map(|f| recommended_settings(&crate::paths::resolve(f))).transpose()
+    }
+
+    fn write_recommended(&self) -> Result<()> {
+        let file = self.model_dir("fm").join(flowmimic_control::recommended::FILE);
+        match self.recommended()? {
+            Some(text) if std::fs::read_to_string(&file).ok().as_ref() != Some(&text) => {
+                Ok(flowmimic_io::write_atomic(&file, text.as_bytes())?)
+            }
+            _ => Ok(()),
+        }
     }
 
     fn evaluate(&self, model_keys: &[String]) -> Result<String> {
@@ -404,7 +418,12 @@ impl Stages<'_> {
         let objectives = &self.config.pipeline.objectives;
         let models: Vec<String> = objectives.iter().map(|o| format!("{o}={}", self.model_dir(o).display())).collect();
         let (quick, humanoid) = (self.quick, &self.humanoid);
-        stage("evaluate", &eval_dir, key(&[model_keys.join(","), quick.to_string()]), || {
+        if objectives.iter().any(|o| o == "fm") {
+            self.write_recommended()?;
+        }
+        let mut parts = vec![model_keys.join(","), quick.to_string()];
+        parts.extend(self.recommended()?);
+        stage("evaluate", &eval_dir, key(&parts), || {
             let common = || Common::new(models.clone(), eval_dir.clone(), quick);
             eval::run(EvalCommand::Survival { common: common(), nfe: vec![1, 2, 5, 10, 20], seconds: None }, humanoid)?;
             eval::run(EvalCommand::Latency { common: common(), nfe: vec![1, 2, 5, 10, 20], guided: None }, humanoid)?;

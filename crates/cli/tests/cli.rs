@@ -496,6 +496,14 @@ fn the_pipeline_runs_every_stage_then_skips_what_is_done() {
     assert!(recommended.contains("[joystick]") && recommended.contains("adaptive = 1.5"), "{recommended}");
     assert!(!recommended.contains("m/s"), "the shipped model's measurements were copied: {recommended}");
     assert!(text.contains("w 50 (model)") || text.contains("| 50 |"), "not evaluated at its settings: {text}");
+    // Other recommended settings: the same model, evaluated again at them.
+    let walks = init.replace("models/fm\"", "models/fm-walks\"");
+    std::fs::write(dir.join("init.toml"), format!("[pipeline]\nexperts = \"one\"\nobjectives = [\"fm\"]\n{walks}"))
+        .unwrap();
+    let text = ok(&dir, &[&["--config", "init.toml", "pipeline", "-o", "i"], &both[..]].concat());
+    assert!(text.contains("== train fm: up to date") && text.contains("== evaluate ->"), "{text}");
+    let recommended = std::fs::read_to_string(dir.join("i/model/fm/recommended.toml")).unwrap();
+    assert!(recommended.contains("fm-walks") && recommended.contains("adaptive = 0"), "{recommended}");
     // A layer that sets init_iterations = 0 (as configs/recipe-fm.toml over the cpu preset)
     // trains the policy from new weights, whatever init says.
     std::fs::write(dir.join("scratch.toml"), "[pipeline]\ninit_iterations = 0\n").unwrap();
