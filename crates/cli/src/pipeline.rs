@@ -390,8 +390,8 @@ impl Stages<'_> {
             }
             Ok(())
         })?;
-        if fm {
-            self.write_recommended()?;
+        if let Some(text) = self.recommended()?.filter(|_| fm) {
+            self.write_recommended(&text)?;
         }
         Ok(key)
     }
@@ -403,14 +403,13 @@ impl Stages<'_> {
         file.map(|f| recommended_settings(&crate::paths::resolve(f))).transpose()
     }
 
-    fn write_recommended(&self) -> Result<()> {
+    /// Writes `text` as the FM model's `recommended.toml` where it differs from what is there.
+    fn write_recommended(&self, text: &str) -> Result<()> {
         let file = self.model_dir("fm").join(flowmimic_control::recommended::FILE);
-        match self.recommended()? {
-            Some(text) if std::fs::read_to_string(&file).ok().as_ref() != Some(&text) => {
-                Ok(flowmimic_io::write_atomic(&file, text.as_bytes())?)
-            }
-            _ => Ok(()),
+        if std::fs::read_to_string(&file).ok().as_deref() != Some(text) {
+            flowmimic_io::write_atomic(&file, text.as_bytes())?;
         }
+        Ok(())
     }
 
     fn evaluate(&self, model_keys: &[String]) -> Result<String> {
@@ -418,11 +417,12 @@ impl Stages<'_> {
         let objectives = &self.config.pipeline.objectives;
         let models: Vec<String> = objectives.iter().map(|o| format!("{o}={}", self.model_dir(o).display())).collect();
         let (quick, humanoid) = (self.quick, &self.humanoid);
-        if objectives.iter().any(|o| o == "fm") {
-            self.write_recommended()?;
+        let recommended = self.recommended()?;
+        if let Some(text) = recommended.as_deref().filter(|_| objectives.iter().any(|o| o == "fm")) {
+            self.write_recommended(text)?;
         }
         let mut parts = vec![model_keys.join(","), quick.to_string()];
-        parts.extend(self.recommended()?);
+        parts.extend(recommended);
         stage("evaluate", &eval_dir, key(&parts), || {
             let common = || Common::new(models.clone(), eval_dir.clone(), quick);
             eval::run(EvalCommand::Survival { common: common(), nfe: vec![1, 2, 5, 10, 20], seconds: None }, humanoid)?;
