@@ -371,10 +371,10 @@ fn live_play_steers_from_a_real_browser() {
          last second {budget}"
     );
     // The guidance model with a fifth of inverse dynamics walks forward on W and keeps walking
-    // back on S. Measured in 13 runs of this test on 2 cores: W 0.73-0.88 m/s, S -0.27 to -0.63
-    // m/s for -0.6 asked; two runs sampled a slow backward plan (-0.15 / -0.18 m/s) and walked
-    // back at -0.27 / -0.30. The bound on S is the reversal's own (-0.1 m/s) with room for the
-    // gait's sway, not a speed the sampler always reaches. R restarts.
+    // back on S. Measured in 13 runs of this test on 2 cores and CI's one: W 0.73-0.88 m/s, S
+    // -0.27 to -0.63 m/s for -0.6 asked; two runs sampled a slow backward plan (-0.15 / -0.18
+    // m/s) and walked back at -0.30 / -0.27. The bound on S is the reversal's own (-0.1 m/s)
+    // with room for the gait's sway, not a speed the sampler always reaches. R restarts.
     assert!(forward > 0.5 && backward < -0.15, "W: {forward:.2} m/s, S: {backward:.2} m/s");
     // The joystick issue's bar is walking back within 1.5 s of S from a forward walk: measured
     // here 0.97-1.37 s in 16 runs. The assertion leaves room for the sampler's spread.
