@@ -6,7 +6,7 @@
 use flowmimic_control::controller::{default_guidance_steps, start_frame, start_pose};
 use flowmimic_control::costs::batch_guidance_grad;
 use flowmimic_control::recommended::Settings;
-use flowmimic_control::{ControlConfig, Controller as Driver, Layout, Recommended, Task};
+use flowmimic_control::{ControlConfig, Controller as Driver, Layout, Recommended, Steer, Task};
 use flowmimic_geom::{CharFrame, DVec3};
 use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
 use flowmimic_motion::{Clip as Motion, GaitParams, ImportOptions};
@@ -160,7 +160,7 @@ impl Model {
             .detach(move || -> Result<Vec<f32>, flowmimic_control::ControlError> {
                 // One cost per row (the same task), in the frame of the walker at the origin.
                 let here = CharFrame::new(DVec3::ZERO, 0.0);
-                let cost = |_| task.as_ref().map_or(Ok(None), |t| t.cost(layout, 0.0, &here, 0.0));
+                let cost = |_| task.as_ref().map_or(Ok(None), |t| t.cost(layout, 0.0, &here, Steer::default()));
                 let costs = (0..n).map(cost).collect::<Result<Vec<_>, _>>()?;
                 let std = &model.norm.std[model.layout().cond_len()..];
                 let grad = |x: &[f32], k: usize| batch_guidance_grad(&costs, std, x, k);
@@ -203,7 +203,8 @@ struct Controller {
 #[pymethods]
 impl Controller {
     /// `settings_json`: settings over the model's recommended ones for `task` (JSON of
-    /// `nfe`, `guidance_scale`, `adaptive`, `inverse_dynamics`, `guidance_interval`, `approach`).
+    /// `nfe`, `guidance_scale`, `adaptive`, `inverse_dynamics`, `acceleration`,
+    /// `guidance_interval`, `approach`).
     #[new]
     #[pyo3(signature = (model, envs = 1, task = "walk", settings_json = None, clip = None, seed = 0))]
     fn new(

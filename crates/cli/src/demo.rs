@@ -23,6 +23,7 @@ const DEMO_JOYSTICK: Settings = Settings {
     guidance_scale: Some(40.0),
     adaptive: Some(0.0),
     inverse_dynamics: Some(0.2),
+    acceleration: None,
     guidance_interval: None,
     approach: None,
 };

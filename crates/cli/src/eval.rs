@@ -309,6 +309,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         guidance_steps: chosen.guidance_interval,
         adaptive: chosen.adaptive,
         inverse_dynamics: chosen.inverse_dynamics,
+        acceleration: chosen.acceleration,
         rollouts: rollouts.as_deref(),
         progress: &with_progress,
     };

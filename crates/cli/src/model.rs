@@ -1,7 +1,7 @@
 //! `flowmimic train` and `flowmimic bench model`: the trajectory model.
 
 use crate::progress::{CsvLog, Progress};
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result, anyhow, bail};
 use flowmimic_control::humanoid_layout;
 use flowmimic_data::{Dataset, Stats};
 use flowmimic_model::train::{CHECKPOINT_FILE, MODEL_FILE};
@@ -30,6 +30,7 @@ pub fn train(
 ) -> Result<()> {
     if let Some(s) = steps {
         cfg.steps = s;
+        cfg.validate().map_err(|e| anyhow!("--steps {s}: {e}"))?;
     }
     let objective = cfg.objective(objective)?;
     if !model.time_features.is_multiple_of(2 * objective.times()) {

@@ -424,6 +424,12 @@ impl Stages<'_> {
         let mut parts = vec![model_keys.join(","), quick.to_string()];
         parts.extend(recommended);
         stage("evaluate", &eval_dir, key(&parts), || {
+            // The protocols append to the report: it starts again, so that it shows this
+            // evaluation only (the points already run stay in their CSV files and are reused).
+            let report = eval_dir.join("report.md");
+            if report.exists() {
+                std::fs::remove_file(&report).with_context(|| format!("removing the old {}", report.display()))?;
+            }
             let common = || Common::new(models.clone(), eval_dir.clone(), quick);
             eval::run(EvalCommand::Survival { common: common(), nfe: vec![1, 2, 5, 10, 20], seconds: None }, humanoid)?;
             eval::run(EvalCommand::Latency { common: common(), nfe: vec![1, 2, 5, 10, 20], guided: None }, humanoid)?;

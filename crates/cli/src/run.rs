@@ -129,6 +129,11 @@ pub struct GuidanceArgs {
     /// 0).
     #[arg(long, value_name = "BETA")]
     pub inverse_dynamics: Option<f32>,
+    /// The most the joystick velocity asked of guidance speeds up, m/s^2 per axis; slowing down
+    /// is not limited. 0: the command as given (the paper; default: the model's
+    /// recommended.toml for the task, else 0).
+    #[arg(long, value_name = "M_PER_S2")]
+    pub acceleration: Option<f32>,
 }
 
 /// Which settings a command drives a model with, and where each came from.
@@ -138,6 +143,7 @@ pub struct Chosen {
     pub guidance_scale: f32,
     pub adaptive: Option<Adaptive>,
     pub inverse_dynamics: f32,
+    pub acceleration: f32,
     pub guidance_interval: Option<(usize, usize)>,
     pub approach: bool,
 }
@@ -167,6 +173,7 @@ impl DriveArgs {
         pick("w", fmt(self.guidance_scale), fmt(model.guidance_scale), &DEFAULT_SCALE.to_string());
         pick("adaptive", fmt(g.adaptive), fmt(model.adaptive), "0");
         pick("inverse dynamics", fmt(g.inverse_dynamics), fmt(model.inverse_dynamics), "0");
+        pick("acceleration", fmt(g.acceleration), fmt(model.acceleration), "0");
         let model_interval = model.guidance_interval.map(|[a, b]| (a, b));
         pick("guidance steps", interval(g.guidance_interval), interval(model_interval), "all but the last quarter");
         pick("approach", self.approach.map(|a| a.to_string()), model.approach.map(|a| a.to_string()), "false");
@@ -176,6 +183,7 @@ impl DriveArgs {
             guidance_scale: self.guidance_scale,
             adaptive: g.adaptive,
             inverse_dynamics: g.inverse_dynamics,
+            acceleration: g.acceleration,
             guidance_interval: g.guidance_interval.map(|(a, b)| [a, b]),
             approach: self.approach,
         };
@@ -186,6 +194,7 @@ impl DriveArgs {
             guidance_scale: config.guidance_scale,
             adaptive: config.adaptive,
             inverse_dynamics: config.inverse_dynamics,
+            acceleration: config.acceleration,
             guidance_interval: config.guidance_steps,
             approach: settings.approaches(),
         })
@@ -200,6 +209,7 @@ impl Chosen {
             guidance_steps: self.guidance_interval,
             adaptive: self.adaptive,
             inverse_dynamics: self.inverse_dynamics,
+            acceleration: self.acceleration,
             ..ControlConfig::new(self.nfe, self.guidance_scale, seconds)
         }
     }

@@ -504,6 +504,8 @@ fn the_pipeline_runs_every_stage_then_skips_what_is_done() {
     assert!(text.contains("== train fm: up to date") && text.contains("== evaluate ->"), "{text}");
     let recommended = std::fs::read_to_string(dir.join("i/model/fm/recommended.toml")).unwrap();
     assert!(recommended.contains("fm-walks") && recommended.contains("adaptive = 0"), "{recommended}");
+    let report = std::fs::read_to_string(dir.join("i/eval/report.md")).unwrap();
+    assert_eq!(report.matches("## Joystick tracking").count(), 1, "the report holds this evaluation only: {report}");
     // A layer that sets init_iterations = 0 (as configs/recipe-fm.toml over the cpu preset)
     // trains the policy from new weights, whatever init says.
     std::fs::write(dir.join("scratch.toml"), "[pipeline]\ninit_iterations = 0\n").unwrap();

@@ -5,7 +5,7 @@
 use crate::adapt::{Adaptive, Recent};
 use crate::history::History;
 use crate::rollout::{Rollout, RolloutInfo};
-use crate::task::{HeadingHold, Task};
+use crate::task::{HeadingHold, SpeedRamp, Steer, Task};
 use crate::{ControlError, Layout};
 use flowmimic_geom::{CharFrame, DVec3, heading, quat_from_wxyz};
 use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
@@ -48,6 +48,10 @@ pub struct ControlConfig {
     /// needs a model directory with inverse dynamics, and `execute` 1.
     #[serde(default)]
     pub inverse_dynamics: f32,
+    /// The most the joystick velocity asked of guidance speeds up, m/s^2 per axis
+    /// ([`SpeedRamp`]); 0: the command as given (the paper).
+    #[serde(default)]
+    pub acceleration: f32,
     /// Sleep so that steps happen at 30 Hz of wall-clock time.
     pub paced: bool,
     /// Seed of the controller's random stream: the sampler's noise and the kicks.
@@ -72,6 +76,7 @@ impl ControlConfig {
             seconds,
             execute: 1,
             inverse_dynamics: 0.0,
+            acceleration: 0.0,
             paced: false,
             seed: 0,
             kick_every: 0.0,
@@ -140,8 +145,9 @@ pub struct Controller<'m> {
     histories: Vec<History>,
     /// Each environment's last half second of pelvis poses, for adaptive guidance.
     recent: Vec<Recent>,
-    /// Each environment's joystick heading.
+    /// Each environment's joystick heading and the velocity it was last asked.
     holds: Vec<HeadingHold>,
+    ramps: Vec<SpeedRamp>,
     /// Each environment's current plan (physical units) and how many of its actions ran.
     plans: Vec<Option<(Vec<f32>, usize)>>,
     alive: Vec<bool>,
@@ -168,6 +174,10 @@ fn check_sampler(model: &TrajectoryModel, config: &ControlConfig) -> Result<(), 
     }
     if !config.guidance_scale.is_finite() || config.guidance_scale < 0.0 {
         return Err(ControlError::BadCommand { what: "guidance scale", value: f64::from(config.guidance_scale) });
+    }
+    if !(config.acceleration.is_finite() && config.acceleration >= 0.0) {
+        let value = f64::from(config.acceleration);
+        return Err(ControlError::BadCommand { what: "joystick acceleration (m/s^2, 0 for none)", value });
     }
     let beta = config.inverse_dynamics;
     if !(0.0..=1.0).contains(&beta) {
@@ -219,6 +229,7 @@ impl<'m> Controller<'m> {
             histories: (0..envs).map(|_| History::new(model.layout().spec)).collect(),
             recent: vec![Recent::default(); envs],
             holds: vec![HeadingHold::default(); envs],
+            ramps: vec![SpeedRamp::default(); envs],
             plans: vec![None; envs],
             alive: vec![true; envs],
             rng: StdRng::seed_from_u64(config.seed),
@@ -244,6 +255,7 @@ impl<'m> Controller<'m> {
         self.recent[e] = Recent::default();
         self.recent[e].observe(&self.envs[e].bodies());
         self.holds[e] = HeadingHold::default();
+        self.ramps[e] = SpeedRamp::default();
         self.plans[e] = None;
         self.alive[e] = true;
         Ok(())
@@ -310,8 +322,15 @@ impl<'m> Controller<'m> {
                 cond.extend(layout.interleave(&states, &actions));
                 let b = self.envs[e].bodies();
                 let frame = CharFrame::from_root(b.pos[0], b.rot[0]);
-                let lag = self.holds[e].lag(tasks[e].joystick_at(time), time, frame.yaw);
-                let cost = tasks[e].cost(traj, time, &frame, lag)?;
+                let segment = tasks[e].joystick_at(time);
+                let acceleration = f64::from(self.config.acceleration);
+                let steer = Steer {
+                    heading_lag: self.holds[e].lag(segment, time, frame.yaw),
+                    velocity: (acceleration > 0.0)
+                        .then(|| self.ramps[e].velocity(segment, time, acceleration))
+                        .flatten(),
+                };
+                let cost = tasks[e].cost(traj, time, &frame, steer)?;
                 let factor =
                     self.config.adaptive.map_or(1.0, |a| a.factor(tasks[e].executed_error(time, &self.recent[e])));
                 costs.push(cost.map(|c| c.scaled(factor)));

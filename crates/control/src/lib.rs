@@ -28,7 +28,7 @@ pub use history::History;
 pub use layout::Layout;
 pub use recommended::Recommended;
 pub use rollout::{Rollout, RolloutInfo, Row};
-pub use task::{Hand, HeadingHold, JoystickSegment, Task};
+pub use task::{Hand, HeadingHold, JoystickSegment, SpeedRamp, Steer, Task};
 
 /// The trajectory model in `dir`, refused when its states and actions are not this humanoid's.
 pub fn load_model(dir: &std::path::Path) -> Result<flowmimic_model::TrajectoryModel, ControlError> {

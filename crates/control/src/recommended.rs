@@ -30,6 +30,8 @@ pub struct Settings {
     pub adaptive: Option<f32>,
     /// Share of the executed action read by inverse dynamics out of the plan, 0-1.
     pub inverse_dynamics: Option<f32>,
+    /// The most the joystick velocity asked speeds up (m/s^2); 0 for the command as given.
+    pub acceleration: Option<f32>,
     /// Solver steps that apply guidance, `[start, end)`.
     pub guidance_interval: Option<[usize; 2]>,
     /// Walk up to a hand target (reach and compose).
@@ -63,6 +65,7 @@ impl Settings {
             guidance_scale: self.guidance_scale.or(under.guidance_scale),
             adaptive: self.adaptive.or(under.adaptive),
             inverse_dynamics: self.inverse_dynamics.or(under.inverse_dynamics),
+            acceleration: self.acceleration.or(under.acceleration),
             guidance_interval: self.guidance_interval.or(under.guidance_interval),
             approach: self.approach.or(under.approach),
         }
@@ -74,7 +77,8 @@ impl Settings {
     }
 
     /// The controller's settings for `seconds`, the defaults where absent ([`DEFAULT_NFE`],
-    /// [`DEFAULT_SCALE`], the fixed scale, no inverse dynamics, the default guidance interval).
+    /// [`DEFAULT_SCALE`], the fixed scale, no inverse dynamics, the command's speed as given,
+    /// the default guidance interval).
     pub fn control(
         &self,
         gradient: flowmimic_model::Gradient,
@@ -87,6 +91,7 @@ impl Settings {
             guidance_steps: self.guidance_interval.map(|[a, b]| (a, b)),
             adaptive: reference.map(Adaptive::new).transpose()?,
             inverse_dynamics: self.inverse_dynamics.unwrap_or(0.0),
+            acceleration: self.acceleration.unwrap_or(0.0),
             ..crate::ControlConfig::new(
                 self.nfe.unwrap_or(DEFAULT_NFE),
                 self.guidance_scale.unwrap_or(DEFAULT_SCALE),
@@ -108,6 +113,9 @@ impl Settings {
         }
         if let Some(b) = self.inverse_dynamics.filter(|b| !(0.0..=1.0).contains(b)) {
             return bad("inverse_dynamics", format!("{b}: a share from 0 to 1"));
+        }
+        if let Some(a) = self.acceleration.filter(|a| !(a.is_finite() && *a >= 0.0)) {
+            return bad("acceleration", format!("{a}: m/s^2, 0 or more (0 for the command as given)"));
         }
         if let Some([a, b]) = self.guidance_interval.filter(|[a, b]| a >= b) {
             return bad("guidance_interval", format!("[{a}, {b}]: start before end"));

@@ -178,22 +178,24 @@ impl Task {
         c
     }
 
-    /// The cost at `time` for a trajectory predicted from the character frame `frame`, the
-    /// walker `heading_lag` rad behind its joystick heading ([`HeadingHold::lag`]: the turn asked
-    /// is the command's rate plus what catches that up in [`HeadingHold::CATCH_UP`]); `None` when
-    /// the task asks nothing.
+    /// The cost at `time` for a trajectory predicted from the character frame `frame`, its
+    /// joystick command shaped by `steer` (the turn asked is the command's rate plus what
+    /// catches the heading lag up in [`HeadingHold::CATCH_UP`]); `None` when the task asks
+    /// nothing.
     pub fn cost(
         &self,
         layout: Layout,
         time: f64,
         frame: &CharFrame,
-        heading_lag: f64,
+        steer: Steer,
     ) -> Result<Option<Sum>, ControlError> {
         let mut sum = Sum::default();
         let [wj, wt, wr, ww] = self.weights;
         if let Some(s) = self.joystick_at(time) {
-            let rate = (s.yaw_rate + heading_lag / HeadingHold::CATCH_UP).clamp(-Heading::MAX_RATE, Heading::MAX_RATE);
-            sum = sum.with(wj, Joystick::turning(layout, s.vx, s.vy, rate)?);
+            let rate =
+                (s.yaw_rate + steer.heading_lag / HeadingHold::CATCH_UP).clamp(-Heading::MAX_RATE, Heading::MAX_RATE);
+            let [vx, vy] = steer.velocity.unwrap_or([s.vx, s.vy]);
+            sum = sum.with(wj, Joystick::turning(layout, vx, vy, rate)?);
             sum = sum.with(wt, Heading::new(layout, rate)?);
         }
         if let Some((hand, target)) = self.reach {
@@ -245,6 +247,49 @@ impl Task {
         let s = self.joystick_at(time)?;
         let ([vx, vy], yaw_rate) = recent.velocity()?;
         Some(((vx - s.vx).powi(2) + (vy - s.vy).powi(2) + (yaw_rate - s.yaw_rate).powi(2)).sqrt())
+    }
+}
+
+/// How the controller shapes a joystick command before guidance asks it (the default: as
+/// given, the walker on its heading).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Steer {
+    /// Radians the walker is behind the joystick's heading ([`HeadingHold::lag`]).
+    pub heading_lag: f64,
+    /// The velocity asked (forward, left; m/s) in place of the command's ([`SpeedRamp`]).
+    pub velocity: Option<[f64; 2]>,
+}
+
+/// The joystick velocity asked of guidance, brought up to the command at a bounded
+/// acceleration. Asked at once to go from standing to 1.4 m/s, `fm-walks` spun and fell in 19
+/// of 40 trials of issue 46's schedule; brought up at 1 m/s^2, in 4 (docs/guidance.md, "A
+/// joystick that speeds up gently"). Slowing down is not limited: it is what a walker asked to
+/// stop or reverse must do first, and it toppled no one.
+#[derive(Clone, Debug, Default)]
+pub struct SpeedRamp {
+    /// The velocity last asked (forward, left; m/s) and when (s).
+    asked: Option<([f64; 2], f64)>,
+}
+
+impl SpeedRamp {
+    /// The velocity to ask at `time` for the joystick `segment`: each axis moves toward the
+    /// command freely between 0 and what was last asked, and at most `acceleration` (m/s^2)
+    /// beyond. The first command is asked as given. `None` without a joystick command.
+    pub fn velocity(&mut self, segment: Option<&JoystickSegment>, time: f64, acceleration: f64) -> Option<[f64; 2]> {
+        let Some(s) = segment else {
+            self.asked = None;
+            return None;
+        };
+        let command = [s.vx, s.vy];
+        let velocity = match self.asked {
+            Some((last, at)) => {
+                let most = acceleration * (time - at).max(0.0);
+                [0, 1].map(|i| command[i].clamp(last[i].min(0.0) - most, last[i].max(0.0) + most))
+            }
+            None => command,
+        };
+        self.asked = Some((velocity, time));
+        Some(velocity)
     }
 }
 

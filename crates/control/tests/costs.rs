@@ -141,6 +141,39 @@ fn turning_is_asked_step_by_step_and_far_targets_still_pull() {
     assert!(Reach::world(layout, body::R_HAND, [6.0, 0.0, 3.5], &frame).is_err(), "heights are still checked");
 }
 
+/// The joystick velocity asked speeds up at most the acceleration given, on each axis, and
+/// slows toward standing at once; a ramped command reaches the joystick's cost.
+#[test]
+fn a_joystick_speeds_up_gently_and_slows_at_once() {
+    let seg = |vx, vy| JoystickSegment { seconds: 3.0, vx, vy, yaw_rate: 0.0 };
+    let mut ramp = SpeedRamp::default();
+    assert_eq!(ramp.velocity(Some(&seg(0.0, 0.0)), 0.0, 1.0), Some([0.0, 0.0]), "the first command as given");
+    let close = |v: Option<[f64; 2]>, want: [f64; 2]| {
+        let v = v.unwrap();
+        assert!((v[0] - want[0]).abs() < 1e-12 && (v[1] - want[1]).abs() < 1e-12, "{v:?} vs {want:?}");
+    };
+    // From standing to 1.4 m/s forward and 0.3 m/s right: 0.5 s later, 0.5 m/s on each axis at most.
+    close(ramp.velocity(Some(&seg(1.4, -0.3)), 0.5, 1.0), [0.5, -0.3]);
+    close(ramp.velocity(Some(&seg(1.4, -0.3)), 1.0, 1.0), [1.0, -0.3]);
+    close(ramp.velocity(Some(&seg(1.4, -0.3)), 2.0, 1.0), [1.4, -0.3]);
+    // Reversing: down to 0 at once, then backward at the acceleration.
+    close(ramp.velocity(Some(&seg(-0.6, 0.0)), 2.1, 1.0), [-0.1, 0.0]);
+    close(ramp.velocity(Some(&seg(-0.6, 0.0)), 2.5, 1.0), [-0.5, 0.0]);
+    close(ramp.velocity(Some(&seg(0.4, 0.0)), 2.6, 1.0), [0.1, 0.0]);
+    assert_eq!(ramp.velocity(None, 3.0, 1.0), None, "no joystick, nothing asked");
+    close(ramp.velocity(Some(&seg(1.0, 0.0)), 3.1, 1.0), [1.0, 0.0]);
+    // The joystick cost asks the ramped velocity in place of the command's.
+    let layout = Layout { horizon: 4 };
+    let tau = trajectory(layout);
+    let frame = CharFrame::new(DVec3::new(0.0, 0.0, 0.9), 0.0);
+    let task = Task { joystick: vec![seg(1.4, 0.0)], ..Task::walk() };
+    let asked =
+        task.cost(layout, 0.0, &frame, Steer { heading_lag: 0.0, velocity: Some([0.5, 0.0]) }).unwrap().unwrap();
+    let slower = Task { joystick: vec![seg(0.5, 0.0)], ..Task::walk() };
+    let slower = slower.cost(layout, 0.0, &frame, Steer::default()).unwrap().unwrap();
+    assert!((asked.cost(&tau) - slower.cost(&tau)).abs() < 1e-6, "{} vs {}", asked.cost(&tau), slower.cost(&tau));
+}
+
 /// The joystick's heading is held from when its turn rate was set: a walker that turned less
 /// than asked (or drifted while asked to go straight) is behind it by what it missed, so the
 /// next plan is asked to undo it.
@@ -171,13 +204,14 @@ fn a_joystick_heading_is_held_from_when_its_command_began() {
     let tau = trajectory(layout);
     let frame = CharFrame::new(DVec3::new(0.0, 0.0, 0.9), 0.0);
     let task = Task { joystick: vec![left], ..Task::walk() };
-    let asked = task.cost(layout, 0.0, &frame, 0.25).unwrap().unwrap();
+    let asked = task.cost(layout, 0.0, &frame, Steer { heading_lag: 0.25, velocity: None }).unwrap().unwrap();
     let faster = Sum::default()
         .with(1.0, Joystick::turning(layout, 0.8, 0.0, 1.1).unwrap())
         .with(1.0, Heading::new(layout, 1.1).unwrap());
     assert!((asked.cost(&tau) - faster.cost(&tau)).abs() < 1e-6, "{} vs {}", asked.cost(&tau), faster.cost(&tau));
     // Walking straight, the heading is asked too (rate 0).
-    let straight = Task { joystick: vec![straight], ..Task::walk() }.cost(layout, 0.0, &frame, 0.0).unwrap().unwrap();
+    let straight =
+        Task { joystick: vec![straight], ..Task::walk() }.cost(layout, 0.0, &frame, Steer::default()).unwrap().unwrap();
     assert_eq!(straight.terms.len(), 2);
 }
 

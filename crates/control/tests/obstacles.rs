@@ -138,10 +138,14 @@ fn a_task_with_obstacles_avoids_them_unless_blind() {
     let frame = CharFrame::new(DVec3::new(0.0, 0.0, 0.9), 0.0);
     let post = Obstacle::cylinder([1.5, 0.1], 0.4);
     let task = Task { waypoint: Some([8.0, 0.0]), obstacles: vec![post], ..Task::walk() };
-    assert_eq!(task.cost(layout, 0.0, &frame, 0.0).unwrap().unwrap().terms.len(), 3, "pursuit, heading, avoid");
+    assert_eq!(
+        task.cost(layout, 0.0, &frame, Steer::default()).unwrap().unwrap().terms.len(),
+        3,
+        "pursuit, heading, avoid"
+    );
     assert!(task.pelvis_goal(&frame, 0.0).unwrap()[1] < 0.0, "the pursuit detours");
     let blind = Task { blind: true, ..task.clone() };
-    assert_eq!(blind.cost(layout, 0.0, &frame, 0.0).unwrap().unwrap().terms.len(), 2);
+    assert_eq!(blind.cost(layout, 0.0, &frame, Steer::default()).unwrap().unwrap().terms.len(), 2);
     assert_eq!(blind.pelvis_goal(&frame, 0.0), Some([8.0, 0.0]));
     let bad = Task { obstacles: vec![Obstacle::cylinder([1.0, f64::NAN], 0.3)], ..task };
     assert!(matches!(bad.validate(), Err(ControlError::Obstacle(_))));
@@ -153,9 +157,11 @@ fn among_obstacles_the_hand_waits_until_its_target_is_near() {
     let frame = CharFrame::new(DVec3::new(0.0, 0.0, 0.9), 0.0);
     let reach = Some((Hand::Right, [4.0, -0.4, 0.85]));
     let task = Task { reach, approach: true, obstacles: vec![Obstacle::cylinder([2.8, 0.0], 0.3)], ..Task::walk() };
-    let far = task.cost(layout, 0.0, &frame, 0.0).unwrap().unwrap();
-    let near = task.cost(layout, 0.0, &CharFrame::new(DVec3::new(3.0, 0.0, 0.9), 0.0), 0.0).unwrap().unwrap();
-    let open = Task { obstacles: Vec::new(), ..task.clone() }.cost(layout, 0.0, &frame, 0.0).unwrap().unwrap();
+    let far = task.cost(layout, 0.0, &frame, Steer::default()).unwrap().unwrap();
+    let near =
+        task.cost(layout, 0.0, &CharFrame::new(DVec3::new(3.0, 0.0, 0.9), 0.0), Steer::default()).unwrap().unwrap();
+    let open =
+        Task { obstacles: Vec::new(), ..task.clone() }.cost(layout, 0.0, &frame, Steer::default()).unwrap().unwrap();
     // Pursuit and heading, and the plan's obstacle cost; the hand's cost once near, or always
     // without obstacles.
     assert_eq!((far.terms.len(), near.terms.len(), open.terms.len()), (3, 4, 3));

@@ -45,6 +45,8 @@ pub struct Study<'a> {
     pub adaptive: Option<Adaptive>,
     /// Share of the executed action taken from inverse dynamics (0: the plan's own).
     pub inverse_dynamics: f32,
+    /// The joystick velocity's most speed-up (m/s^2; 0: the command as given).
+    pub acceleration: f32,
     /// Where each point's rollout is written when its trials run (`None`: nowhere; stored
     /// points are not run again).
     pub rollouts: Option<&'a Path>,
@@ -96,6 +98,7 @@ impl Study<'_> {
             guidance_steps: self.guidance_steps,
             adaptive: self.adaptive,
             inverse_dynamics: self.inverse_dynamics,
+            acceleration: self.acceleration,
         }
     }
 
@@ -769,6 +772,7 @@ impl Study<'_> {
                             guidance_steps,
                             adaptive: None,
                             inverse_dynamics: 0.0,
+                            acceleration: 0.0,
                         };
                         let e = protocols::guidance_effect(&self.bench(m), task, point, samples)?;
                         let g = serde_json::to_string(&gradient)?;

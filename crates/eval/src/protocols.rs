@@ -3,7 +3,7 @@
 
 use crate::{HAND_REACHED, composition_success, reach_errors, velocity_rmse};
 use flowmimic_control::{
-    Adaptive, ControlConfig, ControlError, Hand, JoystickSegment, Rollout, StepReport, Task, controller,
+    Adaptive, ControlConfig, ControlError, Hand, JoystickSegment, Rollout, Steer, StepReport, Task, controller,
 };
 use flowmimic_geom::{CharFrame, DVec3, wrap_angle};
 use flowmimic_model::{Gradient, TrajectoryModel};
@@ -46,10 +46,13 @@ pub struct Point {
     /// Share of the executed action taken from inverse dynamics (0: the plan's own).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub inverse_dynamics: f32,
+    /// The joystick velocity's most speed-up (m/s^2; 0: the command as given).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub acceleration: f32,
 }
 
-fn is_zero(share: &f32) -> bool {
-    *share == 0.0
+fn is_zero(value: &f32) -> bool {
+    *value == 0.0
 }
 
 impl Bench<'_> {
@@ -71,6 +74,7 @@ impl Bench<'_> {
             seconds,
             execute: point.execute,
             inverse_dynamics: point.inverse_dynamics,
+            acceleration: point.acceleration,
             paced: false,
             seed: point.seed,
             kick_every: if kicks { 1.0 } else { 0.0 },
@@ -625,7 +629,7 @@ pub fn guidance_effect(
         }
         let b = env.bodies();
         // The command has just begun: the walker is on its heading.
-        let cost = task.cost(traj, 0.0, &CharFrame::from_root(b.pos[0], b.rot[0]), 0.0)?;
+        let cost = task.cost(traj, 0.0, &CharFrame::from_root(b.pos[0], b.rot[0]), Steer::default())?;
         costs.push(Some(cost.ok_or(ControlError::Start("the task asks nothing to guide".into()))?));
     }
     let (len, std) = (traj.len(), &bench.model.norm.std[layout.cond_len()..]);

@@ -121,6 +121,9 @@ impl Store {
             let inverse = m.inverse_content.as_deref().unwrap_or("none");
             steps += &format!("\0inverse dynamics {} {inverse}", point.inverse_dynamics);
         }
+        if point.acceleration > 0.0 {
+            steps += &format!("\0acceleration {}", point.acceleration);
+        }
         let inputs = format!("{:x}", Sha256::digest(format!("{}\0{settings}{steps}", m.content)));
         let model = format!("{}@{}", m.label, &inputs[..12]);
         format!("{model},{},{h},{nfe},{w},{},{k},{seed}", m.model.objective.name(), g.trim_matches('"'))

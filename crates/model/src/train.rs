@@ -48,6 +48,11 @@ pub struct TrainConfig {
     /// What the learning rate does after warm-up: `constant` (the paper) or `cosine` (down to 0
     /// at `steps`; a resumed run with more steps follows the longer curve from where it is).
     pub lr_schedule: LrSchedule,
+    /// With `cosine`: the step before which the rate holds, as `constant` would; from it on the
+    /// rate follows the whole run's cosine (dropping to its value there). 0: the cosine starts
+    /// after warm-up. It equals a constant run resumed at this step with `cosine`, because a
+    /// step's batch and noise come from (seed, step).
+    pub decay_from: usize,
     /// Global gradient-norm clip.
     pub grad_clip: f32,
     /// Flow Matching's distribution of path times.
@@ -95,6 +100,7 @@ impl TrainConfig {
         let warm = ((step + 1) as f32 / self.warmup.max(1) as f32).min(1.0);
         let decay = match self.lr_schedule {
             LrSchedule::Constant => 1.0,
+            LrSchedule::Cosine if step < self.decay_from => 1.0,
             LrSchedule::Cosine => {
                 let span = self.steps.saturating_sub(self.warmup).max(1) as f32;
                 let done = (step.saturating_sub(self.warmup) as f32 / span).min(1.0);
@@ -114,6 +120,7 @@ impl Default for TrainConfig {
             lr: 1e-3,
             warmup: 500,
             lr_schedule: LrSchedule::Constant,
+            decay_from: 0,
             grad_clip: 1.0,
             fm_time: fm::TimeDistribution::Uniform,
             fm_solver: fm::Solver::Euler,
@@ -140,6 +147,15 @@ impl TrainConfig {
         }
         if !(self.lr.is_finite() && self.lr > 0.0 && self.grad_clip.is_finite() && self.grad_clip > 0.0) {
             return Err(format!("train.lr ({}) and grad_clip ({}) must be positive", self.lr, self.grad_clip));
+        }
+        if self.decay_from > 0 && self.lr_schedule == LrSchedule::Constant {
+            return Err(format!("train.decay_from ({}) needs lr_schedule = \"cosine\"", self.decay_from));
+        }
+        if self.decay_from >= self.steps {
+            return Err(format!(
+                "train.decay_from ({}) must be below train.steps ({}): the rate would never decay",
+                self.decay_from, self.steps
+            ));
         }
         if !(0.0..1.0).contains(&self.validation_fraction) {
             return Err(format!("train.validation_fraction is {}; it must be in [0, 1)", self.validation_fraction));

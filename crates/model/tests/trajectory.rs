@@ -88,4 +88,18 @@ fn the_learning_rate_warms_up_then_holds_or_follows_a_cosine_to_zero() {
     assert!(cosine.lr_at(1000) < 1e-12 && cosine.lr_at(5000) < 1e-12, "zero from the last step on");
     let lrs: Vec<f32> = (100..=1000).map(|s| cosine.lr_at(s)).collect();
     assert!(lrs.windows(2).all(|w| w[1] <= w[0]), "it only falls after warm-up");
+    // Held until `decay_from`, then the whole run's cosine: a constant run resumed there with
+    // `cosine` (configs/decay.toml's recipe).
+    let held = TrainConfig { decay_from: 600, ..cosine };
+    assert!(held.validate().is_ok());
+    for s in [0, 99, 100, 599] {
+        assert_eq!(held.lr_at(s), constant.lr_at(s), "held at step {s}");
+    }
+    for s in [600, 601, 999, 1000] {
+        assert_eq!(held.lr_at(s), cosine.lr_at(s), "the cosine at step {s}");
+    }
+    let error = TrainConfig { decay_from: 600, ..constant }.validate().unwrap_err();
+    assert!(error.contains("decay_from") && error.contains("cosine"), "{error}");
+    let error = TrainConfig { decay_from: 1000, ..cosine }.validate().unwrap_err();
+    assert!(error.contains("decay_from") && error.contains("steps"), "{error}");
 }
