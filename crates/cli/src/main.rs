@@ -155,7 +155,7 @@ enum Command {
     },
     /// Drive the humanoid with a trained model, optionally steered by a task (joystick, reach,
     /// waypoint, or walk-to-a-point-while-reaching). Settings left out (NFE, guidance scale,
-    /// adaptive guidance, inverse dynamics, approach) come from the model directory's
+    /// adaptive guidance, inverse dynamics, acceleration, approach) come from the model directory's
     /// recommended.toml for the task, and each is printed with its source. Writes the rollout
     /// (states, actions, commands, timings) for `flowmimic eval` and the viewers, and prints
     /// what the task achieved.

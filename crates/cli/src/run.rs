@@ -129,8 +129,9 @@ pub struct GuidanceArgs {
     /// 0).
     #[arg(long, value_name = "BETA")]
     pub inverse_dynamics: Option<f32>,
-    /// The most the joystick velocity asked of guidance speeds up, m/s^2 per axis; slowing down
-    /// is not limited. 0: the command as given (the paper; default: the model's
+    /// The most the joystick velocity asked of guidance speeds up, m/s^2 on each of the forward
+    /// and sideways axes (the turn rate is asked as given); slowing down is not limited. 0: the
+    /// command as given (the paper; default: the model's
     /// recommended.toml for the task, else 0).
     #[arg(long, value_name = "M_PER_S2")]
     pub acceleration: Option<f32>,
