@@ -145,8 +145,9 @@ pub struct Controller<'m> {
     histories: Vec<History>,
     /// Each environment's last half second of pelvis poses, for adaptive guidance.
     recent: Vec<Recent>,
-    /// Each environment's joystick heading and the velocity it was last asked.
+    /// Each environment's joystick heading.
     holds: Vec<HeadingHold>,
+    /// Each environment's joystick velocity as last asked, when speed-ups are ramped.
     ramps: Vec<SpeedRamp>,
     /// Each environment's current plan (physical units) and how many of its actions ran.
     plans: Vec<Option<(Vec<f32>, usize)>>,
