@@ -189,16 +189,18 @@ pub fn run_dataset(cmd: DatasetCommand) -> Result<()> {
     }
     // Per clip, so that one expert that steps in place or falls cannot hide behind the total.
     println!(
-        "\n{:<20} {:>9} {:>9} {:>8} {:>13} {:>10} {:>10}",
-        "clip", "steps", "backward", "turning", "sidestepping", "reversing", "fall rate"
+        "\n{:<20} {:>9} {:>9} {:>8} {:>13} {:>11} {:>10} {:>10}",
+        "clip", "steps", "backward", "turning", "sidestepping", "aside L/R", "reversing", "fall rate"
     );
     for (clip, cov, episodes, falls) in &per_clip {
         println!(
-            "{clip:<20} {:>9} {:>8.1}% {:>7.1}% {:>12.1}% {:>9.1}% {:>9.0}%",
+            "{clip:<20} {:>9} {:>8.1}% {:>7.1}% {:>12.1}% {:>5.1}/{:>4.1}% {:>9.1}% {:>9.0}%",
             cov.steps,
             100.0 * cov.backward,
             100.0 * cov.turning,
             100.0 * cov.sidestep,
+            100.0 * cov.aside[0],
+            100.0 * cov.aside[1],
             100.0 * cov.reversing,
             100.0 * *falls as f64 / (*episodes).max(1) as f64
         );

@@ -400,6 +400,11 @@ pub(crate) fn print_coverage(cov: &Coverage, dir: &Path) -> Result<()> {
         100.0 * cov.sidestep
     );
     println!(
+        "  sidestepping more than walking forward or back: {:.1}% to the left, {:.1}% to the right",
+        100.0 * cov.aside[0],
+        100.0 * cov.aside[1]
+    );
+    println!(
         "  reversing (1 s windows whose forward speed goes from beyond +{r} to beyond -{r} m/s, or back) {:.1}%",
         100.0 * cov.reversing,
         r = coverage::REVERSING

@@ -92,7 +92,7 @@ pub struct DriveArgs {
     /// Guidance scale w (v' = v - w grad G); each task's gradient is scaled to its error
     /// (m/s, rad/s, m) in the model's normalised coordinates, so w means the same for every
     /// task; 0 for none (default: the model's recommended.toml for the task, else 10).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub guidance_scale: Option<f32>,
     /// With a hand target: walk up to it (a pursuit command toward a point beside it that
     /// brings the hand there; with a waypoint, toward that point within 0.4 m of it) instead of
@@ -120,20 +120,20 @@ pub struct GuidanceArgs {
     /// over the last half second (m/s and rad/s) divided by this reference error, within w/4
     /// and w; other tasks keep w. 0: the fixed scale w throughout (default: the model's
     /// recommended.toml for the task, else 0).
-    #[arg(long, value_parser = parse_adaptive)]
+    #[arg(long, allow_negative_numbers = true, value_parser = parse_adaptive)]
     pub adaptive: Option<f32>,
     /// Share BETA of the executed action taken from inverse dynamics, 0 to 1: the action that
     /// the model directory's inverse dynamics (`flowmimic inverse`) reads out of the current
     /// state and the plan's next state, blended as a_plan + BETA (a_inverse - a_plan). 0: the
     /// plan's own action (the paper; default: the model's recommended.toml for the task, else
     /// 0).
-    #[arg(long, value_name = "BETA")]
+    #[arg(long, allow_negative_numbers = true, value_name = "BETA")]
     pub inverse_dynamics: Option<f32>,
     /// The most the joystick velocity asked of guidance speeds up, m/s^2 on each of the forward
     /// and sideways axes (the turn rate is asked as given); slowing down is not limited. 0: the
     /// command as given (the paper; default: the model's
     /// recommended.toml for the task, else 0).
-    #[arg(long, value_name = "M_PER_S2")]
+    #[arg(long, allow_negative_numbers = true, value_name = "M_PER_S2")]
     pub acceleration: Option<f32>,
 }
 

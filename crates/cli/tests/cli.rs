@@ -380,6 +380,7 @@ fn a_newcomers_mistakes_get_clear_answers() {
     refused(&["run", "--envs", "0"], &["0 environments", "1 to 4096"]);
     refused(&["run", "--envs", "100000"], &["100000 environments"]);
     refused(&["track", "train", "--iterations", "0"], &["at least 1"]);
+    refused(&["run", "--acceleration", "-1", "--seconds", "0.2"], &["acceleration = -1", "0 or more"]);
     // Files of the wrong kind.
     std::fs::write(dir.join("picture.png"), b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR").unwrap();
     refused(&["motion", "import", "picture.png"], &["picture.png", "not a BVH or DeepMimic", "PNG image"]);
@@ -542,11 +543,11 @@ fn the_pipeline_runs_every_stage_then_skips_what_is_done() {
     for clip in ["wander_4", "walk_back", "reach_4", "reach_stand", "transitions_2"] {
         assert!(all.iter().any(|g| g == clip), "{clip} not in {all:?}");
     }
-    assert_eq!(all.len(), 12, "{all:?}");
+    assert_eq!(all.len(), 14, "{all:?}");
     let walks = generated("generated-walks");
     let without_reaches: Vec<String> = all.iter().filter(|c| !c.starts_with("reach_")).cloned().collect();
     assert_eq!(walks, without_reaches);
-    assert_eq!(walks.len(), 7, "{walks:?}");
+    assert_eq!(walks.len(), 9, "{walks:?}");
     // Other model settings leave the stages before the model alone, and refuse to overwrite
     // the trained model.
     std::fs::write(dir.join("wider.toml"), "[model]\nd_model = 24\n").unwrap();

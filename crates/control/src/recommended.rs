@@ -84,7 +84,7 @@ impl Settings {
         gradient: flowmimic_model::Gradient,
         seconds: f64,
     ) -> Result<crate::ControlConfig, ControlError> {
-        self.validate("settings").map_err(ControlError::Sampler)?;
+        self.validate().map_err(ControlError::Sampler)?;
         let reference = self.adaptive.filter(|&r| r > 0.0);
         Ok(crate::ControlConfig {
             gradient,
@@ -100,8 +100,9 @@ impl Settings {
         })
     }
 
-    fn validate(&self, task: &str) -> Result<(), String> {
-        let bad = |what: &str, value: String| Err(format!("[{task}] {what} = {value}"));
+    /// The first setting out of range, as `name = value: why`.
+    fn validate(&self) -> Result<(), String> {
+        let bad = |what: &str, value: String| Err(format!("{what} = {value}"));
         if let Some(n) = self.nfe.filter(|&n| n == 0) {
             return bad("nfe", format!("{n}: at least 1"));
         }
@@ -136,7 +137,7 @@ impl Recommended {
         let text = flowmimic_io::read_to_string(&path).map_err(|e| ControlError::Start(e.to_string()))?;
         let r: Self = toml::from_str(&text).map_err(|e| bad(e.to_string()))?;
         for (task, s) in r.tasks() {
-            s.validate(task).map_err(bad)?;
+            s.validate().map_err(|m| bad(format!("[{task}] {m}")))?;
         }
         Ok(r)
     }

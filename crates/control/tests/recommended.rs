@@ -38,7 +38,7 @@ fn a_bad_recommended_file_is_refused_with_its_name() {
         ("[joystik]\nnfe = 2\n", "joystik"),
         ("[walk]\nadaptive = -1.0\n", "adaptive"),
         ("[play]\nguidance_scale = -30.0\n", "guidance_scale"),
-        ("[joystick]\nacceleration = -1.0\n", "acceleration"),
+        ("[joystick]\nacceleration = -1.0\n", "[joystick] acceleration = -1"),
     ] {
         std::fs::write(&file, text).unwrap();
         let err = Recommended::load(&dir).unwrap_err().to_string();

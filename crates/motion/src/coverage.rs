@@ -44,6 +44,10 @@ pub struct Coverage {
     pub backward: f64,
     pub turning: f64,
     pub sidestep: f64,
+    /// Fractions of steps that sidestep more than they walk forward or back (|sideways speed| >
+    /// [`SIDESTEP`] and > |forward speed|): to the left, to the right. A turning walk's pelvis
+    /// also moves sideways, so [`Coverage::sidestep`] alone overstates sidestepping.
+    pub aside: [f64; 2],
     /// Fraction of 1 s windows that reverse: forward speed beyond [`REVERSING`] one way at the
     /// start and the other way at the end (forward to backward, or back).
     pub reversing: f64,
@@ -83,6 +87,7 @@ impl Coverage {
             backward: share(&|v| v[0] < BACKWARD),
             turning: share(&|v| v[2].abs() > TURNING),
             sidestep: share(&|v| v[1].abs() > SIDESTEP),
+            aside: [1.0, -1.0].map(|side| share(&|v| side * v[1] > SIDESTEP.max(v[0].abs()))),
             reversing: reversals as f64 / windows.max(1) as f64,
             ranges,
             velocities,
