@@ -29,7 +29,7 @@ pub const WANDERING_SECONDS: f64 = 40.0;
 
 /// The corpus's reaching walks and walks of transitions by default.
 pub const REACHING_WALKS: usize = 4;
-pub const TRANSITION_WALKS: usize = 4;
+pub const TRANSITION_WALKS: usize = 2;
 
 /// Share of the time a hand is out in the corpus's reaching walks (`reach_<seed>`), and in its
 /// standing reaches (`reach_stand`). The walker stops for each reach, 0.6 s before and after it

@@ -184,15 +184,9 @@ impl WanderParams {
         let hold = if self.transitions { TRANSITION_HOLD } else { WANDER_HOLD };
         let mut keys = vec![(0.0, Command::walk(rng.random_range(0.6..1.2), 0.0, 0.0))];
         let mut t = rng.random_range(hold[0]..hold[1]);
-        // The side of the next sidestep of a walk of transitions (+1 left), right first.
-        let mut side = -1.0;
         while t < self.duration {
             let command = if self.transitions {
-                let command = Command::transition(&mut rng, &keys.last().expect("a first command").1, side);
-                if command.lateral != 0.0 {
-                    side = -side;
-                }
-                command
+                Command::transition(&mut rng, &keys.last().expect("a first command").1)
             } else {
                 Command::sample(&mut rng)
             };
@@ -296,14 +290,11 @@ impl Command {
     }
 
     /// The next command of a walk of transitions: from walking, a reversal (forward to
-    /// backward or back, blended over 1 s), a stop, a sidestep (0.2-0.4 m/s to `side`: +1 left,
-    /// -1 right) or a turn on the spot (0.3-0.7 rad/s); from standing, a start forward (up to
-    /// the 1.6 m/s of a brisk walk) or backward. A walk alternates its sidesteps' sides: drawn
-    /// at random, the corpus's two walks sidestepped right in 0.0% and 4.3% of their steps
-    /// (left 21.1% and 0.8%), and no model trained on them stepped right (docs/data.md).
-    pub fn transition(rng: &mut impl Rng, previous: &Self, side: f64) -> Self {
+    /// backward or back, blended over 1 s), a stop, a sidestep (0.2-0.4 m/s to either side) or
+    /// a turn on the spot (0.3-0.7 rad/s); from standing, a start forward or backward.
+    pub fn transition(rng: &mut impl Rng, previous: &Self) -> Self {
         let sign = |rng: &mut dyn rand::RngCore| if rng.random_bool(0.5) { 1.0 } else { -1.0 };
-        let forward = |rng: &mut dyn rand::RngCore| Self::walk(rng.random_range(0.5..1.6), 0.0, 0.0);
+        let forward = |rng: &mut dyn rand::RngCore| Self::walk(rng.random_range(0.5..1.3), 0.0, 0.0);
         let backward = |rng: &mut dyn rand::RngCore| Self::walk(-rng.random_range(0.3..0.7), 0.0, 0.0);
         let r: f64 = rng.random();
         if previous.activity() < 0.5 || r < 0.4 {
@@ -316,7 +307,7 @@ impl Command {
         } else if r < 0.55 {
             Self::walk(0.0, 0.0, 0.0)
         } else if r < 0.8 {
-            Self::walk(0.0, side * rng.random_range(0.2..0.4), 0.0)
+            Self::walk(0.0, sign(rng) * rng.random_range(0.2..0.4), 0.0)
         } else {
             Self::walk(0.0, 0.0, sign(rng) * rng.random_range(0.3..0.7))
         }
