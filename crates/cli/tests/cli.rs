@@ -75,7 +75,7 @@ fn stages_connect_through_their_files() {
     assert!(inspect.contains("backward") && dir.join("data/coverage_yaw_rate.png").exists(), "{inspect}");
     // Coverage and falls per clip as well as in total.
     let per_clip = inspect.lines().filter(|l| l.starts_with("w ") && l.ends_with('%')).count();
-    assert!(inspect.contains("sidestepping  reversing  fall rate") && per_clip == 1, "{inspect}");
+    assert!(inspect.contains("sidestepping   aside L/R  reversing  fall rate") && per_clip == 1, "{inspect}");
     assert!(
         inspect.contains("hand height (m)   left    right   higher") && inspect.contains("a hand above 1.1 m in"),
         "{inspect}"
