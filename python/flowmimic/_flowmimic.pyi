@@ -65,6 +65,8 @@ class Controller:
         """One control step: states, actions, fell, alive, touching."""
     def body_positions(self) -> npt.NDArray[np.float64]:
         """World positions of the 24 bodies, `[E, 24, 3]`."""
+    def planned(self) -> npt.NDArray[np.float32]:
+        """What each current plan asks, `[E, 3]`: forward and left velocity (m/s) in its own heading, turn rate (rad/s)."""
 
 class Clip:
     """A motion clip retargeted to the humanoid."""

@@ -347,6 +347,17 @@ impl Controller {
         });
         body_array(py, flat, envs)
     }
+
+    /// What each environment's current plan asks, `[E, 3]`: its mean velocity over the horizon
+    /// in its own heading (forward, left; m/s) and its turn rate (rad/s), the numbers to set
+    /// beside the body's; NaN before the first step and after a fall.
+    fn planned<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let envs = self.envs();
+        let flat: Vec<f32> = self.cell.with_dependent(|_, c| {
+            (0..envs).flat_map(|e| c.intent(e).filter(|_| c.is_alive(e)).unwrap_or([f32::NAN; 3])).collect()
+        });
+        matrix(py, flat, envs, 3)
+    }
 }
 
 /// A motion clip retargeted to the humanoid (`flowmimic-clip/1` safetensors).

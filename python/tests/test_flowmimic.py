@@ -51,6 +51,9 @@ def test_controller_walks_where_the_joystick_says_with_the_models_settings(model
     assert out.alive.all() and not out.fell.any()
     walked = np.linalg.norm(walkers.body_positions()[:, 0, :2] - start, axis=1)
     assert (walked > 1.8).all(), f"walked {walked} m in 3 s at 1 m/s asked"
+    # The plans ask to walk forward, not back or aside.
+    planned = walkers.planned()
+    assert planned.shape == (4, 3) and (planned[:, 0] > 0.5).all() and (np.abs(planned[:, 1]) < 0.3).all(), planned
     assert walkers.time == pytest.approx(3.0)
     walkers.reset()
     assert walkers.time == 0.0

@@ -527,19 +527,36 @@ pub(crate) fn print_outcome(o: &Outcome) {
             "  {:<22} {:<17} {:<17} {:<17} {:>8}",
             "asked (fwd, left, yaw)", "forward m/s", "sideways m/s", "yaw rate rad/s", "followed"
         );
+        // The range over environments (NaN ones, fallen before the segment, left out).
+        let range = |values: &[[f64; 3]], i: usize| {
+            let (lo, hi) = values
+                .iter()
+                .filter(|a| a[i].is_finite())
+                .fold((f64::MAX, f64::MIN), |(lo, hi), a| (lo.min(a[i]), hi.max(a[i])));
+            if lo > hi {
+                "-".to_string()
+            } else if lo == hi {
+                format!("{lo:+.2}")
+            } else {
+                format!("{lo:+.2} to {hi:+.2}")
+            }
+        };
         for s in &o.segments {
-            let range = |i: usize| {
-                let (lo, hi) = s.achieved.iter().fold((f64::MAX, f64::MIN), |(lo, hi), a| (lo.min(a[i]), hi.max(a[i])));
-                if s.achieved.len() == 1 { format!("{lo:+.2}") } else { format!("{lo:+.2} to {hi:+.2}") }
-            };
             println!(
                 "  {:<22} {:<17} {:<17} {:<17} {:>8}",
                 format!("{:+.1}, {:+.1}, {:+.1}", s.asked[0], s.asked[1], s.asked[2]),
-                range(0),
-                range(1),
-                range(2),
+                range(&s.achieved, 0),
+                range(&s.achieved, 1),
+                range(&s.achieved, 2),
                 format!("{}/{}", s.followed, s.achieved.len())
             );
+            // What the model planned beside what the body did: a plan that already misses the
+            // command is the model's (or guidance's) failure, a right plan missed the executor's.
+            if s.planned.iter().flatten().any(|v| v.is_finite()) {
+                let p = &s.planned;
+                let row = format!("  {:<22} {:<17} {:<17} {:<17}", "  planned", range(p, 0), range(p, 1), range(p, 2));
+                println!("{}", row.trim_end());
+            }
         }
     }
     if !o.reach.is_empty() {

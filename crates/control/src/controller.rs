@@ -298,6 +298,12 @@ impl<'m> Controller<'m> {
         Ok(self.envs[e].enter(world)?)
     }
 
+    /// What environment `e`'s current plan asks ([`Layout::intent`]).
+    pub fn intent(&self, e: usize) -> Option<[f32; 3]> {
+        let traj = Layout { horizon: self.model.layout().spec.horizon };
+        self.plan(e).map(|tau| traj.intent(tau))
+    }
+
     /// A planar root-velocity push on environment `e` now (m/s, world frame).
     pub fn kick(&mut self, e: usize, velocity: [f64; 2]) -> Result<(), ControlError> {
         Ok(self.envs[e].kick(velocity)?)
@@ -476,7 +482,9 @@ pub fn run(
         let outcome = controller.step(&tasks, time)?;
         for (e, a) in outcome.actions.iter().enumerate() {
             if let Some(a) = a {
-                out.record_action(e, step, a, &tasks[e].command(time), controller.env(e).touching_obstacle());
+                let (plan, touched) =
+                    (controller.intent(e).expect("acted on a plan"), controller.env(e).touching_obstacle());
+                out.record_action(e, step, a, &tasks[e].command(time), plan, touched);
             }
         }
         for &e in &outcome.fell {

@@ -9,6 +9,7 @@
 //! | `action`  | E x T x 69       | executed normalised actions                                 |
 //! | `command` | E x T x 8        | joystick (vx, vy, yaw rate), hand target xyz, waypoint xy   |
 //! | `contact` | E x T            | 1 where the humanoid touched an obstacle during the step     |
+//! | `plan`    | E x T x 3        | the plan in force: its mean root velocity (forward, left m/s) and heading rate (rad/s) over the horizon, in the frame it was sampled in |
 //! | `steps`   | E                | control steps survived (T unless the humanoid fell)         |
 //! | `model_ms`, `physics_ms` | T | wall time per control step for the whole batch            |
 //!
@@ -117,6 +118,9 @@ pub struct Rollout {
     pub command: Vec<f32>,
     /// 1 where the humanoid touched an obstacle during the step (E x T; files before it: 0).
     pub contact: Vec<f32>,
+    /// What the plan in force at each step asked (E x T x 3, [`crate::Layout::intent`]; NaN
+    /// before a fall's padding and in files before it).
+    pub plan: Vec<f32>,
     pub survived: Vec<usize>,
     pub model_ms: Vec<f32>,
     pub physics_ms: Vec<f32>,
@@ -137,6 +141,7 @@ impl Rollout {
             action: vec![0.0; envs * steps * NUM_DOFS],
             command: vec![0.0; envs * steps * COMMAND_DIM],
             contact: vec![0.0; envs * steps],
+            plan: vec![f32::NAN; envs * steps * 3],
             survived: vec![steps; envs],
             model_ms: Vec::with_capacity(steps),
             physics_ms: Vec::with_capacity(steps),
@@ -156,11 +161,20 @@ impl Rollout {
         self.body_pos[at * NUM_BODIES * 3..(at + 1) * NUM_BODIES * 3].copy_from_slice(&row.body_pos);
     }
 
-    /// Writes the action executed and the command in force at step `k` (0..T) of environment
-    /// `e`, and whether it touched an obstacle.
-    pub fn record_action(&mut self, e: usize, k: usize, action: &[f32], command: &[f32; COMMAND_DIM], touched: bool) {
+    /// Writes the action executed, the command in force and what the plan asked at step `k`
+    /// (0..T) of environment `e`, and whether it touched an obstacle.
+    pub fn record_action(
+        &mut self,
+        e: usize,
+        k: usize,
+        action: &[f32],
+        command: &[f32; COMMAND_DIM],
+        plan: [f32; 3],
+        touched: bool,
+    ) {
         let at = e * self.steps + k;
         self.contact[at] = f32::from(u8::from(touched));
+        self.plan[at * 3..(at + 1) * 3].copy_from_slice(&plan);
         self.action[at * NUM_DOFS..(at + 1) * NUM_DOFS].copy_from_slice(action);
         self.command[at * COMMAND_DIM..(at + 1) * COMMAND_DIM].copy_from_slice(command);
     }
@@ -202,6 +216,13 @@ impl Rollout {
     pub fn command(&self, e: usize, k: usize) -> &[f32] {
         let at = (e * self.steps + k) * COMMAND_DIM;
         &self.command[at..at + COMMAND_DIM]
+    }
+
+    /// What the plan in force at step `k` (0..T) of environment `e` asked: forward and left
+    /// velocity (m/s) and heading rate (rad/s); NaN where none was recorded.
+    pub fn plan(&self, e: usize, k: usize) -> [f32; 3] {
+        let at = (e * self.steps + k) * 3;
+        [self.plan[at], self.plan[at + 1], self.plan[at + 2]]
     }
 
     /// Control steps in which environment `e` touched an obstacle.
@@ -250,6 +271,7 @@ impl Rollout {
                 ("action", vec![e, t, NUM_DOFS], &self.action),
                 ("command", vec![e, t, COMMAND_DIM], &self.command),
                 ("contact", vec![e, t], &self.contact),
+                ("plan", vec![e, t, 3], &self.plan),
                 ("steps", vec![e], &survived),
                 ("model_ms", vec![t], &self.model_ms),
                 ("physics_ms", vec![t], &self.physics_ms),
@@ -297,6 +319,10 @@ impl Rollout {
             contact: match file.shape("contact") {
                 Ok(_) => file.f32("contact", &[envs, t])?,
                 Err(_) => vec![0.0; envs * t],
+            },
+            plan: match file.shape("plan") {
+                Ok(_) => file.f32("plan", &[envs, t, 3])?,
+                Err(_) => vec![f32::NAN; envs * t * 3],
             },
             survived,
             model_ms: file.f32("model_ms", &[t])?,

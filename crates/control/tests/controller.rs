@@ -35,6 +35,7 @@ fn the_controller_steps_as_run_records_and_restarts_and_pushes() {
         for (e, action) in outcome.actions.iter().enumerate() {
             let recorded = &rollout.action[(e * rollout.steps + k) * NUM_DOFS..][..NUM_DOFS];
             assert_eq!(action.as_deref(), Some(recorded), "environment {e}, step {k}");
+            assert_eq!(controller.intent(e), action.as_ref().map(|_| rollout.plan(e, k)), "environment {e}, step {k}");
         }
     }
     assert_eq!(controller.steps(), rollout.steps);
@@ -283,4 +284,34 @@ fn the_cosine_trained_model_walks_straight_where_fm_circles_left() {
     eprintln!("unguided yaw rates (rad/s): fm {fm:+.2?}, fm-cosine {cosine:+.2?}");
     assert!(mean(&fm) > 0.15, "fm no longer circles left: {fm:+.2?}");
     assert!(mean(&cosine).abs() < 0.08 && cosine.iter().all(|r| r.abs() < 0.2), "fm-cosine turns: {cosine:+.2?}");
+}
+
+/// Unguided, a plan is the motion the model expects to happen, so what it asks
+/// ([`flowmimic_control::Layout::intent`], what `run` prints as "planned") is what the body
+/// then does: the check that the intent is read in the body's own frame and units.
+#[test]
+fn an_unguided_plan_asks_what_the_body_then_does() {
+    let h = Humanoid::new(SimConfig::default()).unwrap();
+    let clip = flowmimic_motion::straight_walk(&h).unwrap();
+    let model = shipped("fm-walks");
+    let r =
+        run(&model, &h, &clip, vec![Task::walk(); 4], &ControlConfig::new(2, 0.0, 4.0), "fm-walks", |_| {}).unwrap();
+    for e in 0..4 {
+        assert_eq!(r.survived[e], 120, "walker {e} fell");
+        // Means over the last 3 s: planned, and achieved (own-frame velocity, heading rate).
+        let steps = 30..120;
+        let n = steps.len() as f64;
+        let planned = [0, 1, 2].map(|i| steps.clone().map(|k| f64::from(r.plan(e, k)[i])).sum::<f64>() / n);
+        let velocity =
+            |i: usize| steps.clone().map(|k| f64::from(r.state(e, k + 1)[offset::ROOT_VEL + i])).sum::<f64>() / n;
+        let rate = flowmimic_geom::wrap_angle(r.heading(e, 120) - r.heading(e, 30)) / 3.0;
+        let achieved = [velocity(0), velocity(1), rate];
+        eprintln!("walker {e}: planned {planned:+.2?}, achieved {achieved:+.2?}");
+        assert!(
+            (planned[0] - achieved[0]).abs() < 0.1
+                && (planned[1] - achieved[1]).abs() < 0.1
+                && (planned[2] - achieved[2]).abs() < 0.15,
+            "walker {e}: planned {planned:+.2?}, achieved {achieved:+.2?}"
+        );
+    }
 }

@@ -259,3 +259,25 @@ fn walking_up_to_a_hand_target_leads_the_pelvis_beside_it() {
     // Without the approach the waypoint itself.
     assert_eq!(Task { approach: false, ..task }.pelvis_goal(&frame, 0.0), Some([3.92, 4.89]));
 }
+
+#[test]
+fn a_plans_intent_is_its_own_frame_velocity_and_its_turn_rate() {
+    // A plan turning at 0.9 rad/s while it walks 0.5 m/s forward and 0.2 m/s to the right in
+    // its own heading: in the frame it was sampled in, each state's velocity is turned by its
+    // heading, and the intent turns it back.
+    let layout = Layout { horizon: 8 };
+    let mut tau = vec![0.0f32; layout.len()];
+    for k in 1..=layout.horizon {
+        let yaw = 0.9 * k as f32 / 30.0;
+        let (s, c) = yaw.sin_cos();
+        let v = layout.root_vel(k);
+        tau[v] = c * 0.5 + s * 0.2;
+        tau[v + 1] = s * 0.5 - c * 0.2;
+        tau[layout.root_rot(k) + 2] = yaw;
+    }
+    let [forward, left, rate] = layout.intent(&tau);
+    assert!(
+        (forward - 0.5).abs() < 1e-5 && (left + 0.2).abs() < 1e-5 && (rate - 0.9).abs() < 1e-4,
+        "{forward} {left} {rate}"
+    );
+}

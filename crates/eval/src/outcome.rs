@@ -19,6 +19,8 @@ pub struct Segment {
     pub asked: [f64; 3],
     /// Achieved, per environment, over the segment after [`crate::protocols::SEGMENT_SETTLE`].
     pub achieved: Vec<[f64; 3]>,
+    /// What the plans asked, per environment, over the same steps (NaN: no plans recorded).
+    pub planned: Vec<[f64; 3]>,
     /// Environments within [`FOLLOWED_SPEED`] and [`FOLLOWED_YAW_RATE`] of the command that did
     /// not fall.
     pub followed: usize,
@@ -57,8 +59,9 @@ impl Outcome {
             .map(|(i, s)| {
                 let asked = [s.vx, s.vy, s.yaw_rate];
                 let achieved: Vec<[f64; 3]> = trials.iter().map(|t| t.segments[i]).collect();
+                let planned: Vec<[f64; 3]> = trials.iter().map(|t| t.planned[i]).collect();
                 let followed = trials.iter().filter(|t| !t.fell && followed(asked, t.segments[i])).count();
-                Segment { asked, achieved, followed }
+                Segment { asked, achieved, planned, followed }
             })
             .collect();
         Self {

@@ -129,6 +129,9 @@ pub struct JoystickTrial {
     /// frame) and yaw rate (rad/s) from [`SEGMENT_SETTLE`] after the segment's start to its
     /// end, before any fall (NaN when the humanoid fell before).
     pub segments: Vec<[f64; 3]>,
+    /// Per joystick segment, over the same steps: what the plans in force asked, the same three
+    /// numbers ([`flowmimic_control::Layout::intent`]; NaN where the rollout holds no plans).
+    pub planned: Vec<[f64; 3]>,
     /// Per joystick segment: the planar velocity RMSE (m/s) over all its steps before any fall,
     /// the change of gait included (NaN when the humanoid fell before it began).
     pub segment_rmse: Vec<f64>,
@@ -170,7 +173,7 @@ pub fn joystick_trial(r: &Rollout, e: usize) -> JoystickTrial {
         got.push([f64::from(s[offset::ROOT_VEL]), f64::from(s[offset::ROOT_VEL + 1])]);
         yaw_err += (rate - f64::from(c[2])).powi(2);
     }
-    let (mut start, mut segments, mut segment_rmse) = (0.0, Vec::new(), Vec::new());
+    let (mut start, mut segments, mut planned, mut segment_rmse) = (0.0, Vec::new(), Vec::new(), Vec::new());
     for seg in &r.info.tasks[e].joystick {
         let begin = ((start * CONTROL_HZ).round() as usize).min(steps);
         let from = ((start + SEGMENT_SETTLE) * CONTROL_HZ).round() as usize;
@@ -179,12 +182,14 @@ pub fn joystick_trial(r: &Rollout, e: usize) -> JoystickTrial {
         let n = to.saturating_sub(from) as f64;
         let mean = |v: &dyn Fn(usize) -> f64| (from..to).map(v).sum::<f64>() / n;
         segments.push([mean(&|k| got[k][0]), mean(&|k| got[k][1]), mean(&|k| rates[k])]);
+        planned.push([0, 1, 2].map(|i| mean(&|k| f64::from(r.plan(e, k)[i]))));
         segment_rmse.push(velocity_rmse(&cmd[begin..to.max(begin)], &got[begin..to.max(begin)]));
     }
     JoystickTrial {
         velocity_rmse: velocity_rmse(&cmd, &got),
         yaw_rate_rmse: (yaw_err / steps.max(1) as f64).sqrt(),
         segments,
+        planned,
         segment_rmse,
         fell: r.fell(e),
     }

@@ -6,7 +6,8 @@ use flowmimic_sim::state::offset;
 use flowmimic_sim::{NUM_BODIES, NUM_DOFS, STATE_DIM};
 
 /// One environment, `steps` steps, commanded 1 m/s forward and turning at `yaw_rate`, achieving
-/// 0.5 m/s forward and a heading that advances by `turn` radians per step; falls at `fall`.
+/// 0.5 m/s forward and a heading that advances by `turn` radians per step, its plans asking 0.6
+/// m/s forward; falls at `fall`.
 fn rollout(steps: usize, yaw_rate: f64, turn: f64, fall: usize) -> Rollout {
     let nq = 76;
     let mut task = Task::joystick_eval();
@@ -37,6 +38,7 @@ fn rollout(steps: usize, yaw_rate: f64, turn: f64, fall: usize) -> Rollout {
         action: vec![0.0; steps * NUM_DOFS],
         command: Vec::new(),
         contact: vec![0.0; steps],
+        plan: [0.6, 0.0, 0.0].repeat(steps),
         survived: vec![fall],
         model_ms: vec![1.0; steps],
         physics_ms: vec![1.0; steps],
@@ -82,6 +84,8 @@ fn each_joystick_segment_reports_what_it_achieved_after_settling() {
     for (got, want) in t.segments.iter().zip([[0.5, 0.0, 0.3], [-0.3, 0.0, 0.3]]) {
         assert!(got.iter().zip(want).all(|(g, w)| (g - w).abs() < 1e-4), "{got:?} against {want:?}");
     }
+    // What the plans asked, over the same steps: 0.6 m/s forward throughout.
+    assert!(t.planned.iter().all(|p| p.iter().zip([0.6, 0.0, 0.0]).all(|(p, w)| (p - w).abs() < 1e-6)), "{t:?}");
     // Each segment's velocity error over all its steps: 0.5 and 0.2 m/s.
     assert!((t.segment_rmse[0] - 0.5).abs() < 1e-6 && (t.segment_rmse[1] - 0.2).abs() < 1e-6, "{t:?}");
     // A fall in the second segment's first second leaves nothing of it to report after

@@ -363,14 +363,23 @@ struct Simulation<'m> {
 }
 
 /// Steps recorded since the record button, written as a one-environment rollout.
+/// One recorded step's action, the command in force, what the plan asked and whether the
+/// humanoid touched an obstacle.
+struct Acted {
+    action: Vec<f32>,
+    command: [f32; flowmimic_control::task::COMMAND_DIM],
+    plan: [f32; 3],
+    touched: bool,
+}
+
 struct Recording {
     started: SystemTime,
     task: Task,
     /// The sampler in force when recording started (the page may change it later).
     sampler: ControlConfig,
     rows: Vec<Row>,
-    /// Per step: the action, the command and whether the humanoid touched an obstacle.
-    actions: Vec<(Vec<f32>, [f32; flowmimic_control::task::COMMAND_DIM], bool)>,
+    /// Per step, what was executed.
+    actions: Vec<Acted>,
     model_ms: Vec<f32>,
     physics_ms: Vec<f32>,
 }
@@ -451,7 +460,12 @@ impl Simulation<'_> {
                     Ok(outcome) => {
                         (model_ms, physics_ms) = (outcome.model_ms, outcome.physics_ms);
                         if let (Some(r), Some(a)) = (recording.as_mut(), &outcome.actions[0]) {
-                            r.actions.push((a.clone(), task.command(time), controller.env(0).touching_obstacle()));
+                            r.actions.push(Acted {
+                                action: a.clone(),
+                                command: task.command(time),
+                                plan: controller.intent(0).expect("acted on a plan"),
+                                touched: controller.env(0).touching_obstacle(),
+                            });
                             r.rows.push(Row::of(controller.env(0)));
                             r.model_ms.push(model_ms);
                             r.physics_ms.push(physics_ms);
@@ -535,8 +549,8 @@ impl Simulation<'_> {
         for (k, row) in r.rows.iter().enumerate() {
             rollout.put_row(0, k, row);
         }
-        for (k, (action, command, touched)) in r.actions.iter().enumerate() {
-            rollout.record_action(0, k, action, command, *touched);
+        for (k, a) in r.actions.iter().enumerate() {
+            rollout.record_action(0, k, &a.action, &a.command, a.plan, a.touched);
         }
         (rollout.model_ms, rollout.physics_ms) = (r.model_ms, r.physics_ms);
         let seconds = r.started.duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
