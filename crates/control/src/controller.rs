@@ -428,15 +428,12 @@ fn blend_inverse_dynamics(model: &TrajectoryModel, beta: f32, cond: &[f32], futu
     let inverse = model.inverse.as_ref().expect("check_sampler refuses a model without one");
     let (layout, sd) = (model.layout(), model.layout().state_dim);
     let traj = Layout { horizon: layout.spec.horizon };
-    let mut rows = Vec::with_capacity(inverse.input_width() * futures.len() / traj.len());
+    let mut pairs = Vec::with_capacity(2 * sd * futures.len() / traj.len());
     for (c, future) in cond.chunks_exact(layout.cond_len()).zip(futures.chunks_exact(traj.len())) {
-        rows.extend_from_slice(&c[c.len() - sd..]);
-        rows.extend_from_slice(&future[traj.state(1)..][..sd]);
-        if inverse.plan_action {
-            rows.extend_from_slice(&future[traj.action(0)..][..NUM_DOFS]);
-        }
+        pairs.extend_from_slice(&c[c.len() - sd..]);
+        pairs.extend_from_slice(&future[traj.state(1)..][..sd]);
     }
-    let actions = inverse.actions(&rows, futures.len() / traj.len());
+    let actions = inverse.actions(&pairs, futures.len() / traj.len());
     for (future, a) in futures.chunks_exact_mut(traj.len()).zip(actions.chunks_exact(NUM_DOFS)) {
         for (p, q) in future[traj.action(0)..][..NUM_DOFS].iter_mut().zip(a) {
             *p += beta * (q - *p);

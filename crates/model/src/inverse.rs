@@ -40,24 +40,12 @@ pub struct InverseConfig {
     pub validation_fraction: f64,
     /// Seed of the initial weights and the batches.
     pub seed: u64,
-    /// Also read the plan's own action `a_t` (in the data, the expert's clean action that the
-    /// executed one is a noisy copy of): the model then corrects the planned action toward the
-    /// planned next state instead of guessing the whole action from two states.
-    pub plan_action: bool,
 }
 
 impl Default for InverseConfig {
     /// The `cpu` preset's: how the shipped `fm`'s inverse dynamics was fitted (7 min on 2 cores).
     fn default() -> Self {
-        Self {
-            hidden: vec![512, 512],
-            steps: 30_000,
-            batch: 512,
-            lr: 1e-3,
-            validation_fraction: 0.05,
-            seed: 0,
-            plan_action: false,
-        }
+        Self { hidden: vec![512, 512], steps: 30_000, batch: 512, lr: 1e-3, validation_fraction: 0.05, seed: 0 }
     }
 }
 
@@ -80,19 +68,14 @@ impl InverseConfig {
     }
 }
 
-/// Rows of inputs `[s_t, s_{t+1}]` (and `a_t`) and of the executed actions.
+/// Rows of inputs `[s_t, s_{t+1}]` and of the executed actions.
 type Rows = (Vec<f32>, Vec<f32>);
 
 /// Every transition of `datasets` whose two steps lie in the same episode: `s_t` and `s_{t+1}`
-/// (re-expressed in the frame of step t) side by side, with `plan_action` the clean action, and
-/// the executed action between them, in two parts: the rollouts kept for fitting, and those
-/// held out (a fixed share, by the trajectory model's hash).
-fn split(
-    datasets: &[Dataset],
-    (state_dim, action_dim): (usize, usize),
-    plan_action: bool,
-    fraction: f64,
-) -> Result<[Rows; 2], ModelError> {
+/// (re-expressed in the frame of step t) side by side, and the executed action between them, in
+/// two parts: the rollouts kept for fitting, and those held out (a fixed share, by the
+/// trajectory model's hash).
+fn split(datasets: &[Dataset], state_dim: usize, action_dim: usize, fraction: f64) -> Result<[Rows; 2], ModelError> {
     let mut parts = [(Vec::new(), Vec::new()), (Vec::new(), Vec::new())];
     let mut shards = Vec::new();
     for dataset in datasets {
@@ -109,9 +92,6 @@ fn split(
             xs.extend_from_slice(&shard.state[t * state_dim..(t + 1) * state_dim]);
             reexpress(&shard.state[(t + 1) * state_dim..(t + 2) * state_dim], pose(t + 1), pose(t), &mut next);
             xs.extend_from_slice(&next);
-            if plan_action {
-                xs.extend_from_slice(&shard.action[t * action_dim..(t + 1) * action_dim]);
-            }
             ys.extend_from_slice(&shard.noisy_action[t * action_dim..(t + 1) * action_dim]);
         }
     }
@@ -125,13 +105,11 @@ fn split(
     Ok(parts)
 }
 
-/// An inverse-dynamics model: `(s_t, s_{t+1} in frame t) -> a_t`, or with `plan_action`
-/// `(s_t, s_{t+1} in frame t, planned a_t) -> executed a_t`.
+/// An inverse-dynamics model: `(s_t, s_{t+1} in frame t) -> a_t`.
 #[derive(Clone, Debug)]
 pub struct InverseDynamics {
     pub state_dim: usize,
     pub action_dim: usize,
-    pub plan_action: bool,
     mlp: Mlp,
     input_norm: Normaliser,
     output_norm: Normaliser,
@@ -158,10 +136,10 @@ impl InverseDynamics {
         mut on_progress: impl FnMut(&FitProgress),
     ) -> Result<Self, ModelError> {
         config.validate().map_err(ModelError::Invalid)?;
-        let width = input_width(state_dim, action_dim, config.plan_action);
+        let width = 2 * state_dim;
         let mut rng = StdRng::seed_from_u64(config.seed);
         let [(mut train_x, mut train_y), (mut val_x, mut val_y)] =
-            split(datasets, (state_dim, action_dim), config.plan_action, config.validation_fraction)?;
+            split(datasets, state_dim, action_dim, config.validation_fraction)?;
         let moments = |rows: &[f32], width: usize| {
             let mut m = Moments::new(width);
             m.add(rows);
@@ -211,19 +189,13 @@ impl InverseDynamics {
                 on_progress(&FitProgress { step, train_mse, validation_mse });
             }
         }
-        Ok(Self { state_dim, action_dim, plan_action: config.plan_action, mlp, input_norm, output_norm })
+        Ok(Self { state_dim, action_dim, mlp, input_norm, output_norm })
     }
 
-    /// The length of one input row.
-    pub fn input_width(&self) -> usize {
-        input_width(self.state_dim, self.action_dim, self.plan_action)
-    }
-
-    /// The actions for `n` rows of `[s_t, s_{t+1} in frame t]`, with `plan_action` followed by
-    /// the planned `a_t` (physical units).
+    /// The actions for `n` rows of `[s_t, s_{t+1} in frame t]` (physical units).
     pub fn actions(&self, inputs: &[f32], n: usize) -> Vec<f32> {
         let mut x = inputs.to_vec();
-        self.input_norm.normalise(&mut x, 0, self.input_width());
+        self.input_norm.normalise(&mut x, 0, 2 * self.state_dim);
         let mut y = self.mlp.predict(&x, n);
         self.output_norm.denormalise(&mut y, 0, self.action_dim);
         y
@@ -234,8 +206,8 @@ impl InverseDynamics {
         let names: Vec<(String, String)> =
             (0..self.mlp.layers.len()).map(|l| (format!("layer{l}.weight"), format!("layer{l}.bias"))).collect();
         let mut list: Vec<(&str, Vec<usize>, &[f32])> = vec![
-            ("input_mean", vec![self.input_width()], &self.input_norm.mean),
-            ("input_std", vec![self.input_width()], &self.input_norm.std),
+            ("input_mean", vec![2 * self.state_dim], &self.input_norm.mean),
+            ("input_std", vec![2 * self.state_dim], &self.input_norm.std),
             ("output_mean", vec![self.action_dim], &self.output_norm.mean),
             ("output_std", vec![self.action_dim], &self.output_norm.std),
         ];
@@ -249,7 +221,6 @@ impl InverseDynamics {
             ("state_dim".to_string(), self.state_dim.to_string()),
             ("action_dim".to_string(), self.action_dim.to_string()),
             ("hidden".to_string(), hidden.join(",")),
-            ("plan_action".to_string(), self.plan_action.to_string()),
         ]);
         Ok(tensors::save(path, &list, meta)?)
     }
@@ -273,20 +244,12 @@ impl InverseDynamics {
                 ))
                 .into());
         }
-        // Files from before the planned action was an input have no such key.
-        let plan_action = match file.meta("plan_action") {
-            Ok(v) => {
-                v.parse().map_err(|_| file.error(format!("metadata 'plan_action' is '{v}', not true or false")))?
-            }
-            Err(_) => false,
-        };
-        let width = input_width(s, a, plan_action);
         let hidden = file.meta("hidden")?;
         let hidden: Vec<usize> = hidden
             .split(',')
             .map(|h| h.parse().map_err(|_| file.error(format!("metadata 'hidden' is '{hidden}', not sizes"))))
             .collect::<Result<_, _>>()?;
-        let sizes: Vec<usize> = std::iter::once(width).chain(hidden).chain([a]).collect();
+        let sizes: Vec<usize> = std::iter::once(2 * s).chain(hidden).chain([a]).collect();
         let mut mlp = Mlp::new(&sizes, 1.0, &mut StdRng::seed_from_u64(0));
         for (l, layer) in mlp.layers.iter_mut().enumerate() {
             layer.weight = file.f32(&format!("layer{l}.weight"), &[layer.outputs, layer.inputs])?;
@@ -295,8 +258,7 @@ impl InverseDynamics {
         let model = Self {
             state_dim: s,
             action_dim: a,
-            plan_action,
-            input_norm: Normaliser { mean: file.f32("input_mean", &[width])?, std: file.f32("input_std", &[width])? },
+            input_norm: Normaliser { mean: file.f32("input_mean", &[2 * s])?, std: file.f32("input_std", &[2 * s])? },
             output_norm: Normaliser { mean: file.f32("output_mean", &[a])?, std: file.f32("output_std", &[a])? },
             mlp,
         };
@@ -307,11 +269,6 @@ impl InverseDynamics {
         }
         Ok(model)
     }
-}
-
-/// The length of an input row: two states, and the planned action when it is read.
-fn input_width(state_dim: usize, action_dim: usize, plan_action: bool) -> usize {
-    2 * state_dim + if plan_action { action_dim } else { 0 }
 }
 
 /// Mean squared error of `mlp` on standardised rows, in batches.

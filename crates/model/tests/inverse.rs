@@ -50,15 +50,8 @@ fn fits_the_action_from_both_states_and_round_trips() {
     std::fs::create_dir_all(&dir).unwrap();
     let data = dataset(&dir);
     let (sd, ad) = (data.manifest.state_dim, data.manifest.action_dim);
-    let config = InverseConfig {
-        hidden: vec![64],
-        steps: 1000,
-        batch: 128,
-        lr: 3e-3,
-        validation_fraction: 0.25,
-        seed: 0,
-        plan_action: false,
-    };
+    let config =
+        InverseConfig { hidden: vec![64], steps: 1000, batch: 128, lr: 3e-3, validation_fraction: 0.25, seed: 0 };
     let mut last = None;
     let model = InverseDynamics::fit(std::slice::from_ref(&data), sd, ad, &config, |p| last = Some(*p)).unwrap();
     let last = last.unwrap();
