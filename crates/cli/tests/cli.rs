@@ -218,6 +218,7 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     let schedule = ["eval", "joystick", "--model", "fm=fm", "--scales", "0", "--trials", "1", "-o", "eval"];
     let text = ok(dir, &[&schedule[..], &["--schedule", "1:0.5,0,0;1:0,0,0.3"]].concat());
     assert!(text.contains("| 1 | +0.50, +0.00, +0.00 |") && text.contains("| 2 | +0.00, +0.00, +0.30 |"), "{text}");
+    assert!(text.contains("| achieved | planned | followed | falls |"), "{text}");
     let (refused, text) = flowmimic(dir, &[&schedule[..], &["--schedule", &["1:0,0,0"; 9].join(";")]].concat());
     assert!(!refused && text.contains("1 to 8 segments, not 9"), "{text}");
     // Reaching while standing starts from a standing clip and reports the median time to reach.

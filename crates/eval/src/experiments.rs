@@ -60,17 +60,18 @@ fn time_to_arrive(s: &Summary) -> String {
 }
 
 /// The most segments `eval joystick --schedule` reports, and each segment's columns: the mean
-/// achieved forward and sideways speed and yaw rate, and followed (1) or not (0).
+/// achieved forward and sideways speed and yaw rate, followed (1) or not (0), and what the plans
+/// asked over the same steps (the same three numbers).
 pub const MAX_SEGMENTS: usize = 8;
-const SEGMENT_COLUMNS: [[&str; 4]; MAX_SEGMENTS] = [
-    ["s1_vx", "s1_vy", "s1_yaw_rate", "s1_followed"],
-    ["s2_vx", "s2_vy", "s2_yaw_rate", "s2_followed"],
-    ["s3_vx", "s3_vy", "s3_yaw_rate", "s3_followed"],
-    ["s4_vx", "s4_vy", "s4_yaw_rate", "s4_followed"],
-    ["s5_vx", "s5_vy", "s5_yaw_rate", "s5_followed"],
-    ["s6_vx", "s6_vy", "s6_yaw_rate", "s6_followed"],
-    ["s7_vx", "s7_vy", "s7_yaw_rate", "s7_followed"],
-    ["s8_vx", "s8_vy", "s8_yaw_rate", "s8_followed"],
+const SEGMENT_COLUMNS: [[&str; 7]; MAX_SEGMENTS] = [
+    ["s1_vx", "s1_vy", "s1_yaw_rate", "s1_followed", "s1_planned_vx", "s1_planned_vy", "s1_planned_yaw_rate"],
+    ["s2_vx", "s2_vy", "s2_yaw_rate", "s2_followed", "s2_planned_vx", "s2_planned_vy", "s2_planned_yaw_rate"],
+    ["s3_vx", "s3_vy", "s3_yaw_rate", "s3_followed", "s3_planned_vx", "s3_planned_vy", "s3_planned_yaw_rate"],
+    ["s4_vx", "s4_vy", "s4_yaw_rate", "s4_followed", "s4_planned_vx", "s4_planned_vy", "s4_planned_yaw_rate"],
+    ["s5_vx", "s5_vy", "s5_yaw_rate", "s5_followed", "s5_planned_vx", "s5_planned_vy", "s5_planned_yaw_rate"],
+    ["s6_vx", "s6_vy", "s6_yaw_rate", "s6_followed", "s6_planned_vx", "s6_planned_vy", "s6_planned_yaw_rate"],
+    ["s7_vx", "s7_vy", "s7_yaw_rate", "s7_followed", "s7_planned_vx", "s7_planned_vy", "s7_planned_yaw_rate"],
+    ["s8_vx", "s8_vy", "s8_yaw_rate", "s8_followed", "s8_planned_vx", "s8_planned_vy", "s8_planned_yaw_rate"],
 ];
 
 /// `1.0` for true, so falls and successes average into rates.
@@ -308,13 +309,14 @@ impl Study<'_> {
             plot: "velocity_rmse",
             x_label: "guidance scale w",
             y_label: "velocity RMSE (m/s)",
-            header: "| model | H | w | velocity RMSE (m/s) | segment | asked: forward, sideways (m/s), yaw rate (rad/s) | achieved | followed | falls |\n|---|---|---|---|---|---|---|---|---|",
+            header: "| model | H | w | velocity RMSE (m/s) | segment | asked: forward, sideways (m/s), yaw rate (rad/s) | achieved | planned | followed | falls |\n|---|---|---|---|---|---|---|---|---|---|",
         };
         let notes = format!(
             "Schedule `{text}` (`seconds:vx,vy,yaw_rate` segments); RMSE between commanded and achieved planar root \
              velocity over the steps before any fall; NFE {nfe}, {trials} trials. Per segment, the mean achieved forward and \
-             sideways speed and yaw rate from {SEGMENT_SETTLE} s after its start, before any fall, and the share of trials \
-             that followed it: within {FOLLOWED_SPEED} m/s and {FOLLOWED_YAW_RATE} rad/s of the command, with no fall \
+             sideways speed and yaw rate from {SEGMENT_SETTLE} s after its start, before any fall, what the plans asked over \
+             the same steps (their mean velocity in their own heading and their turn rate over the horizon), and the share \
+             of trials that followed it: within {FOLLOWED_SPEED} m/s and {FOLLOWED_YAW_RATE} rad/s of the command, with no fall \
              (7 of 8 is 88%)."
         );
         let steps = (schedule.iter().map(|s| s.seconds).sum::<f64>() * flowmimic_sim::CONTROL_HZ).round() as usize;
@@ -325,8 +327,8 @@ impl Study<'_> {
                 let r = protocols::joystick(bench, point, schedule, trials, report)?;
                 Ok(r.iter()
                     .map(|t| {
-                        let per = schedule.iter().zip(&t.segments).flat_map(|(s, &a)| {
-                            [a[0], a[1], a[2], rate(!t.fell && followed([s.vx, s.vy, s.yaw_rate], a))]
+                        let per = schedule.iter().zip(&t.segments).zip(&t.planned).flat_map(|((s, &a), p)| {
+                            [a[0], a[1], a[2], rate(!t.fell && followed([s.vx, s.vy, s.yaw_rate], a)), p[0], p[1], p[2]]
                         });
                         [t.velocity_rmse, t.yaw_rate_rmse, rate(t.fell)].into_iter().chain(per).collect()
                     })
@@ -338,9 +340,9 @@ impl Study<'_> {
                     .iter()
                     .zip(SEGMENT_COLUMNS)
                     .enumerate()
-                    .map(|(i, (seg, [vx, vy, yaw, ok]))| {
+                    .map(|(i, (seg, [vx, vy, yaw, ok, pvx, pvy, pyaw]))| {
                         format!(
-                            "| {} | {} | {} | {:.3} | {} | {:+.2}, {:+.2}, {:+.2} | {:+.2}, {:+.2}, {:+.2} | {:.0}% | {:.0}% |",
+                            "| {} | {} | {} | {:.3} | {} | {:+.2}, {:+.2}, {:+.2} | {:+.2}, {:+.2}, {:+.2} | {:+.2}, {:+.2}, {:+.2} | {:.0}% | {:.0}% |",
                             m.label,
                             s.horizon,
                             s.scale,
@@ -352,6 +354,9 @@ impl Study<'_> {
                             s.mean[vx],
                             s.mean[vy],
                             s.mean[yaw],
+                            s.mean[pvx],
+                            s.mean[pvy],
+                            s.mean[pyaw],
                             100.0 * s.mean[ok],
                             100.0 * s.mean["fell"]
                         )
