@@ -9,7 +9,7 @@
 //! | `action`  | E x T x 69       | executed normalised actions                                 |
 //! | `command` | E x T x 8        | joystick (vx, vy, yaw rate), hand target xyz, waypoint xy   |
 //! | `contact` | E x T            | 1 where the humanoid touched an obstacle during the step     |
-//! | `plan`    | E x T x 3        | the plan in force: its mean root velocity (forward, left m/s) and heading rate (rad/s) over the horizon, in the frame it was sampled in |
+//! | `plan`    | E x T x 3        | what the plan in force asked over its horizon: velocity in its own heading (forward, left m/s), turn rate (rad/s) |
 //! | `steps`   | E                | control steps survived (T unless the humanoid fell)         |
 //! | `model_ms`, `physics_ms` | T | wall time per control step for the whole batch            |
 //!
@@ -119,7 +119,7 @@ pub struct Rollout {
     /// 1 where the humanoid touched an obstacle during the step (E x T; files before it: 0).
     pub contact: Vec<f32>,
     /// What the plan in force at each step asked (E x T x 3, [`crate::Layout::intent`]; NaN
-    /// before a fall's padding and in files before it).
+    /// after a fall and in files from before plans were kept).
     pub plan: Vec<f32>,
     pub survived: Vec<usize>,
     pub model_ms: Vec<f32>,
