@@ -362,7 +362,6 @@ struct Simulation<'m> {
     notices: broadcast::Sender<Arc<str>>,
 }
 
-/// Steps recorded since the record button, written as a one-environment rollout.
 /// One recorded step's action, the command in force, what the plan asked and whether the
 /// humanoid touched an obstacle.
 struct Acted {
@@ -372,6 +371,7 @@ struct Acted {
     touched: bool,
 }
 
+/// Steps recorded since the record button, written as a one-environment rollout.
 struct Recording {
     started: SystemTime,
     task: Task,
