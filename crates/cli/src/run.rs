@@ -6,7 +6,7 @@ use flowmimic_control::controller::start_pose;
 use flowmimic_control::recommended::{DEFAULT_NFE, DEFAULT_SCALE, Settings};
 use flowmimic_control::{Adaptive, ControlConfig, Hand, JoystickSegment, Recommended, Rollout, StepReport, Task};
 use flowmimic_eval::HAND_REACHED;
-use flowmimic_eval::outcome::{FOLLOWED_SPEED, FOLLOWED_YAW_RATE, Outcome};
+use flowmimic_eval::outcome::{BEFORE_FALL, FOLLOWED_SPEED, FOLLOWED_YAW_RATE, Outcome};
 use flowmimic_eval::protocols::SEGMENT_SETTLE;
 use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_motion::Clip;
@@ -583,7 +583,22 @@ pub(crate) fn print_outcome(o: &Outcome) {
         let n = touched.iter().filter(|&&t| t > 0).count();
         println!("obstacles: touched in {n} of {} environments (control steps touching: {touched:?})", touched.len());
     }
-    println!("{} of {} environments fell", o.fell, o.envs);
+    println!("{} of {} environments fell", o.falls.len(), o.envs);
+    let (from, to) = BEFORE_FALL;
+    for f in &o.falls {
+        let [x, y, z] = f.achieved;
+        let planned = if f.planned.iter().all(|v| v.is_finite()) {
+            let [px, py, pz] = f.planned;
+            format!("; its plans asked {px:+.2}, {py:+.2}, {pz:+.2}")
+        } else {
+            String::new()
+        };
+        println!(
+            "  environment {} fell at {:.1} s; {from} to {to} s before, it moved {x:+.2} m/s forward, {y:+.2} sideways, \
+             turning {z:+.2} rad/s{planned}",
+            f.env, f.seconds
+        );
+    }
 }
 
 /// Values with a unit, all of them for a few, else their range.

@@ -1,11 +1,16 @@
 //! What a rollout achieved for its task, environment by environment: each joystick segment's
 //! achieved speeds against the asked ones (and in how many environments it was followed), the
-//! hand's closest approach to its target, the pelvis's way to its goal, obstacles touched. `flowmimic run` prints
+//! hand's closest approach to its target, the pelvis's way to its goal, obstacles touched, and
+//! for each environment that fell, what it was doing against what its plans asked. `flowmimic run` prints
 //! it after a run and `flowmimic eval outcome` for a saved rollout, so that one failing segment
 //! or environment cannot hide behind an average.
 
-use crate::protocols::{JoystickTrial, ReachTrial, WaypointTrial, joystick_trial, reach_trial, waypoint_trial};
+use crate::protocols::{
+    JoystickTrial, ReachTrial, WaypointTrial, joystick_trial, reach_trial, waypoint_trial, yaw_rates,
+};
 use flowmimic_control::Rollout;
+use flowmimic_sim::CONTROL_HZ;
+use flowmimic_sim::state::offset;
 
 /// How close a followed segment comes to its command over its settled part: forward and
 /// sideways speed within 0.25 m/s, yaw rate within 0.25 rad/s.
@@ -26,11 +31,27 @@ pub struct Segment {
     pub followed: usize,
 }
 
+/// How long before a fall the body's motion is read, and where the reading stops: the last
+/// half second is the falling itself.
+pub const BEFORE_FALL: (f64, f64) = (1.5, 0.5);
+
+/// An environment that fell: when, and over [`BEFORE_FALL`] what the body did against what its
+/// plans asked (forward and sideways m/s, yaw rate rad/s, as a segment's). A plan asking less
+/// than the body does is a stop (or turn) the executed actions did not carry out.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Fall {
+    pub env: usize,
+    pub seconds: f64,
+    pub achieved: [f64; 3],
+    /// NaN where the rollout recorded no plans.
+    pub planned: [f64; 3],
+}
+
 /// A rollout's outcome.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Outcome {
     pub envs: usize,
-    pub fell: usize,
+    pub falls: Vec<Fall>,
     /// The first environment's joystick schedule, segment by segment, over every environment
     /// given the same schedule (empty when there is none).
     pub segments: Vec<Segment>,
@@ -66,7 +87,7 @@ impl Outcome {
             .collect();
         Self {
             envs: r.envs,
-            fell: (0..r.envs).filter(|&e| r.fell(e)).count(),
+            falls: (0..r.envs).filter(|&e| r.fell(e)).map(|e| fall(r, e)).collect(),
             segments,
             reach: (0..r.envs).filter_map(|e| reach_trial(r, e)).collect(),
             waypoint: (0..r.envs).filter_map(|e| waypoint_trial(r, e)).collect(),
@@ -77,5 +98,23 @@ impl Outcome {
                 .any(|t| !t.obstacles.is_empty())
                 .then(|| (0..r.envs).map(|e| r.contact_steps(e)).collect()),
         }
+    }
+}
+
+/// Environment `e`'s fall (it fell).
+fn fall(r: &Rollout, e: usize) -> Fall {
+    let steps = r.survived[e];
+    let step = |seconds: f64| steps.saturating_sub((seconds * CONTROL_HZ).round() as usize);
+    let from = step(BEFORE_FALL.0);
+    let to = step(BEFORE_FALL.1).max(from + 1).min(steps);
+    let rates = yaw_rates(r, e);
+    let n = to.saturating_sub(from) as f64;
+    let mean = |v: &dyn Fn(usize) -> f64| (from..to).map(v).sum::<f64>() / n;
+    let velocity = |k: usize, i: usize| f64::from(r.state(e, k + 1)[offset::ROOT_VEL + i]);
+    Fall {
+        env: e,
+        seconds: steps as f64 / CONTROL_HZ,
+        achieved: [mean(&|k| velocity(k, 0)), mean(&|k| velocity(k, 1)), mean(&|k| rates[k])],
+        planned: [0, 1, 2].map(|i| mean(&|k| f64::from(r.plan(e, k)[i]))),
     }
 }

@@ -1,6 +1,7 @@
 //! Protocol metrics on hand-made rollouts, where the answer is known.
 
 use flowmimic_control::{Rollout, RolloutInfo, Task};
+use flowmimic_eval::outcome::Outcome;
 use flowmimic_eval::protocols::joystick_trial;
 use flowmimic_sim::state::offset;
 use flowmimic_sim::{NUM_BODIES, NUM_DOFS, STATE_DIM};
@@ -95,6 +96,25 @@ fn each_joystick_segment_reports_what_it_achieved_after_settling() {
     assert!((t.segment_rmse[1] - 0.2).abs() < 1e-6, "{t:?}");
     // A fall before the segment began: nothing of it at all.
     assert!(joystick_trial(&with(50), 0).segment_rmse[1].is_nan());
+}
+
+#[test]
+fn a_fall_reports_what_the_body_did_against_its_plans_before_it() {
+    // Falls at step 90 (3 s): from 1.5 to 0.5 s before, steps 45-74, the body walks 0.5 m/s
+    // forward turning 0.3 rad/s while its plans ask 0.6; the last half second (0.9 m/s) is
+    // the falling and is not read.
+    let mut r = rollout(120, 0.0, 0.01, 90);
+    for k in 76..=120 {
+        r.state[k * STATE_DIM + offset::ROOT_VEL] = 0.9;
+    }
+    let o = Outcome::of(&r);
+    assert_eq!(o.falls.len(), 1);
+    let f = o.falls[0];
+    assert!(f.env == 0 && (f.seconds - 3.0).abs() < 1e-9, "{f:?}");
+    assert!(f.achieved.iter().zip([0.5, 0.0, 0.3]).all(|(g, w)| (g - w).abs() < 1e-4), "{f:?}");
+    assert!(f.planned.iter().zip([0.6, 0.0, 0.0]).all(|(p, w)| (p - w).abs() < 1e-6), "{f:?}");
+    // No fall, nothing reported.
+    assert!(Outcome::of(&rollout(120, 0.0, 0.01, 120)).falls.is_empty());
 }
 
 #[test]
