@@ -6,11 +6,10 @@
 //! or environment cannot hide behind an average.
 
 use crate::protocols::{
-    JoystickTrial, ReachTrial, WaypointTrial, joystick_trial, reach_trial, waypoint_trial, yaw_rates,
+    JoystickTrial, ReachTrial, WaypointTrial, joystick_trial, mean_motion, reach_trial, waypoint_trial, yaw_rates,
 };
 use flowmimic_control::Rollout;
 use flowmimic_sim::CONTROL_HZ;
-use flowmimic_sim::state::offset;
 
 /// How close a followed segment comes to its command over its settled part: forward and
 /// sideways speed within 0.25 m/s, yaw rate within 0.25 rad/s.
@@ -107,14 +106,6 @@ fn fall(r: &Rollout, e: usize) -> Fall {
     let step = |seconds: f64| steps.saturating_sub((seconds * CONTROL_HZ).round() as usize);
     let from = step(BEFORE_FALL.0);
     let to = step(BEFORE_FALL.1).max(from + 1).min(steps);
-    let rates = yaw_rates(r, e);
-    let n = to.saturating_sub(from) as f64;
-    let mean = |v: &dyn Fn(usize) -> f64| (from..to).map(v).sum::<f64>() / n;
-    let velocity = |k: usize, i: usize| f64::from(r.state(e, k + 1)[offset::ROOT_VEL + i]);
-    Fall {
-        env: e,
-        seconds: steps as f64 / CONTROL_HZ,
-        achieved: [mean(&|k| velocity(k, 0)), mean(&|k| velocity(k, 1)), mean(&|k| rates[k])],
-        planned: [0, 1, 2].map(|i| mean(&|k| f64::from(r.plan(e, k)[i]))),
-    }
+    let (achieved, planned) = mean_motion(r, e, &yaw_rates(r, e), from..to);
+    Fall { env: e, seconds: steps as f64 / CONTROL_HZ, achieved, planned }
 }

@@ -14,6 +14,7 @@ use flowmimic_sim::{CONTROL_HZ, Humanoid, Obstacle};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
+use std::ops::Range;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -161,6 +162,16 @@ pub fn yaw_rates(r: &Rollout, e: usize) -> Vec<f64> {
     (0..r.survived[e]).map(|k| wrap_angle(r.heading(e, k + 1) - r.heading(e, k)) * CONTROL_HZ).collect()
 }
 
+/// Environment `e`'s mean motion over `steps` (NaN where empty): achieved forward and sideways
+/// speed (m/s) and yaw rate (rad/s, from its [`yaw_rates`] `rates`), and what its plans asked.
+pub(crate) fn mean_motion(r: &Rollout, e: usize, rates: &[f64], steps: Range<usize>) -> ([f64; 3], [f64; 3]) {
+    let n = steps.len() as f64;
+    let mean = |v: &dyn Fn(usize) -> f64| steps.clone().map(v).sum::<f64>() / n;
+    let velocity = |k: usize, i: usize| f64::from(r.state(e, k + 1)[offset::ROOT_VEL + i]);
+    let achieved = [mean(&|k| velocity(k, 0)), mean(&|k| velocity(k, 1)), mean(&|k| rates[k])];
+    (achieved, [0, 1, 2].map(|i| mean(&|k| f64::from(r.plan(e, k)[i]))))
+}
+
 /// Commanded against achieved velocities of one environment of a rollout.
 pub fn joystick_trial(r: &Rollout, e: usize) -> JoystickTrial {
     let steps = r.survived[e];
@@ -179,10 +190,9 @@ pub fn joystick_trial(r: &Rollout, e: usize) -> JoystickTrial {
         let from = ((start + SEGMENT_SETTLE) * CONTROL_HZ).round() as usize;
         start += seg.seconds;
         let to = ((start * CONTROL_HZ).round() as usize).min(steps);
-        let n = to.saturating_sub(from) as f64;
-        let mean = |v: &dyn Fn(usize) -> f64| (from..to).map(v).sum::<f64>() / n;
-        segments.push([mean(&|k| got[k][0]), mean(&|k| got[k][1]), mean(&|k| rates[k])]);
-        planned.push([0, 1, 2].map(|i| mean(&|k| f64::from(r.plan(e, k)[i]))));
+        let (achieved, asked) = mean_motion(r, e, &rates, from..to);
+        segments.push(achieved);
+        planned.push(asked);
         segment_rmse.push(velocity_rmse(&cmd[begin..to.max(begin)], &got[begin..to.max(begin)]));
     }
     JoystickTrial {
