@@ -26,6 +26,7 @@ const DEMO_JOYSTICK: Settings = Settings {
     acceleration: None,
     guidance_interval: None,
     approach: None,
+    start_actions: None,
 };
 
 /// Forward, turn left, turn right, then backward, the walk the joystick protocol asks in

@@ -310,6 +310,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         adaptive: chosen.adaptive,
         inverse_dynamics: chosen.inverse_dynamics,
         acceleration: chosen.acceleration,
+        start_actions: chosen.start_actions,
         rollouts: rollouts.as_deref(),
         progress: &with_progress,
     };

@@ -4,7 +4,9 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use flowmimic_control::controller::start_pose;
 use flowmimic_control::recommended::{DEFAULT_NFE, DEFAULT_SCALE, Settings};
-use flowmimic_control::{Adaptive, ControlConfig, Hand, JoystickSegment, Recommended, Rollout, StepReport, Task};
+use flowmimic_control::{
+    Adaptive, ControlConfig, Hand, JoystickSegment, Recommended, Rollout, StartActions, StepReport, Task,
+};
 use flowmimic_eval::HAND_REACHED;
 use flowmimic_eval::outcome::{BEFORE_FALL, FOLLOWED_SPEED, FOLLOWED_YAW_RATE, Outcome};
 use flowmimic_eval::protocols::SEGMENT_SETTLE;
@@ -135,6 +137,12 @@ pub struct GuidanceArgs {
     /// recommended.toml for the task, else 0).
     #[arg(long, allow_negative_numbers = true, value_name = "M_PER_S2")]
     pub acceleration: Option<f32>,
+    /// The actions of the history an episode starts with, where the start clip holds only
+    /// poses: pd-targets (each next frame's joint angles) or inverse-dynamics (what the model
+    /// directory's inverse dynamics reads out of each pair of frames, like the data's actions;
+    /// default: the model's recommended.toml for the task, else pd-targets).
+    #[arg(long, value_parser = parse_start_actions)]
+    pub start_actions: Option<StartActions>,
 }
 
 /// Which settings a command drives a model with, and where each came from.
@@ -147,6 +155,7 @@ pub struct Chosen {
     pub acceleration: f32,
     pub guidance_interval: Option<(usize, usize)>,
     pub approach: bool,
+    pub start_actions: StartActions,
 }
 
 impl DriveArgs {
@@ -178,6 +187,8 @@ impl DriveArgs {
         let model_interval = model.guidance_interval.map(|[a, b]| (a, b));
         pick("guidance steps", interval(g.guidance_interval), interval(model_interval), "all but the last quarter");
         pick("approach", self.approach.map(|a| a.to_string()), model.approach.map(|a| a.to_string()), "false");
+        let start = |a: Option<StartActions>| a.map(start_actions_name);
+        pick("start actions", start(g.start_actions), start(model.start_actions), "pd-targets");
         eprintln!("settings for {task}: {}", said.join(", "));
         let flags = Settings {
             nfe: self.nfe,
@@ -187,6 +198,7 @@ impl DriveArgs {
             acceleration: g.acceleration,
             guidance_interval: g.guidance_interval.map(|(a, b)| [a, b]),
             approach: self.approach,
+            start_actions: g.start_actions,
         };
         let settings = flags.or(model);
         let config = settings.control(g.gradient, 0.0).map_err(|e| anyhow::anyhow!("{e} (from flags or the model)"))?;
@@ -198,6 +210,7 @@ impl DriveArgs {
             acceleration: config.acceleration,
             guidance_interval: config.guidance_steps,
             approach: settings.approaches(),
+            start_actions: config.start_actions,
         })
     }
 }
@@ -211,6 +224,7 @@ impl Chosen {
             adaptive: self.adaptive,
             inverse_dynamics: self.inverse_dynamics,
             acceleration: self.acceleration,
+            start_actions: self.start_actions,
             ..ControlConfig::new(self.nfe, self.guidance_scale, seconds)
         }
     }
@@ -220,6 +234,22 @@ impl Chosen {
 /// `waypoint`, `compose`, `play`).
 pub fn recommended(dir: &Path, task: &str) -> Result<Settings> {
     Ok(Recommended::load(dir)?.for_task(task))
+}
+
+fn parse_start_actions(text: &str) -> Result<StartActions, String> {
+    match text {
+        "pd-targets" => Ok(StartActions::PdTargets),
+        "inverse-dynamics" => Ok(StartActions::InverseDynamics),
+        _ => Err(format!("'{text}': use pd-targets or inverse-dynamics")),
+    }
+}
+
+fn start_actions_name(a: StartActions) -> String {
+    match a {
+        StartActions::PdTargets => "pd-targets",
+        StartActions::InverseDynamics => "inverse-dynamics",
+    }
+    .to_string()
 }
 
 /// `start:end` with start < end: the solver steps guidance acts on.

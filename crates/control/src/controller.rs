@@ -7,16 +7,31 @@ use crate::history::History;
 use crate::rollout::{Rollout, RolloutInfo};
 use crate::task::{HeadingHold, SpeedRamp, Steer, Task};
 use crate::{ControlError, Layout};
+use flowmimic_data::window::reexpress;
 use flowmimic_geom::{CharFrame, DVec3, heading, quat_from_wxyz};
-use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
+use flowmimic_model::{Gradient, InverseDynamics, TaskGuidance, TrajectoryModel};
 use flowmimic_motion::Clip;
-use flowmimic_sim::{CONTROL_HZ, Env, Humanoid, NUM_DOFS, Obstacle};
+use flowmimic_sim::{CONTROL_HZ, Env, Humanoid, NUM_DOFS, Obstacle, STATE_DIM};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
+
+/// The actions of the history an episode starts with: a clip holds poses, not the actions that
+/// an expert took between them.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum StartActions {
+    /// The PD targets of each following frame (its joint angles).
+    #[default]
+    PdTargets,
+    /// What the model's inverse dynamics reads out of each pair of frames: actions like the
+    /// experts' in the training data, whose PD targets lead the pose. From the generated straight walk it
+    /// halves the arms models' falls in the first 3 s (docs/guidance.md, "A start in the data's actions").
+    InverseDynamics,
+}
 
 /// Sampler and episode settings.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -52,6 +67,9 @@ pub struct ControlConfig {
     /// ([`SpeedRamp`]); 0: the command as given (the paper).
     #[serde(default)]
     pub acceleration: f32,
+    /// The actions of the history an episode starts with ([`start_from_clip`]).
+    #[serde(default)]
+    pub start_actions: StartActions,
     /// Sleep so that steps happen at 30 Hz of wall-clock time.
     pub paced: bool,
     /// Seed of the controller's random stream: the sampler's noise and the kicks.
@@ -77,6 +95,7 @@ impl ControlConfig {
             execute: 1,
             inverse_dynamics: 0.0,
             acceleration: 0.0,
+            start_actions: StartActions::PdTargets,
             paced: false,
             seed: 0,
             kick_every: 0.0,
@@ -104,23 +123,44 @@ pub struct StepReport {
 }
 
 /// Puts `env` at frame `frame` of `clip` and fills `history` with the N frames before it (their
-/// states, and as actions the PD targets of the following frame), so the model starts inside
-/// its training distribution.
+/// states, and as actions what `inverse` reads out of each frame and the next, or without it the
+/// PD targets of the following frame), so the model starts inside its training distribution.
 pub fn start_from_clip(
     env: &mut Env,
     history: &mut History,
     clip: &Clip,
     frame: usize,
     n: usize,
+    inverse: Option<&InverseDynamics>,
 ) -> Result<(), ControlError> {
     let map = env.humanoid().actions().clone();
-    for k in frame.saturating_sub(n)..frame {
+    let first = frame.saturating_sub(n);
+    let mut kin = Vec::with_capacity(n + 1);
+    for k in first..=frame {
         env.reset(&clip.qpos[k], &clip.qvel[k])?;
-        history.observe(&env.bodies());
-        history.act(&map.action_for(&clip.qpos[k + 1][7..]));
+        let b = env.bodies();
+        let root = b.pos[0];
+        kin.push((b.state(), [root.x as f32, root.y as f32, heading(b.rot[0]) as f32]));
     }
-    env.reset(&clip.qpos[frame], &clip.qvel[frame])?;
-    history.observe(&env.bodies());
+    let actions: Vec<Vec<f32>> = match inverse {
+        Some(inverse) => {
+            let mut pairs = Vec::with_capacity(2 * STATE_DIM * n);
+            let mut next = [0.0; STATE_DIM];
+            for w in kin.windows(2) {
+                pairs.extend_from_slice(&w[0].0);
+                reexpress(&w[1].0, w[1].1, w[0].1, &mut next);
+                pairs.extend_from_slice(&next);
+            }
+            inverse.actions(&pairs, kin.len() - 1).chunks_exact(NUM_DOFS).map(<[f32]>::to_vec).collect()
+        }
+        None => (first..frame).map(|k| map.action_for(&clip.qpos[k + 1][7..])).collect(),
+    };
+    for (j, (state, pose)) in kin.iter().enumerate() {
+        history.push(*state, *pose);
+        if let Some(a) = actions.get(j) {
+            history.act(a);
+        }
+    }
     Ok(())
 }
 
@@ -168,7 +208,7 @@ pub struct StepOutcome {
 }
 
 /// Refuses sampler settings that cannot run: no solver steps, a negative or NaN scale,
-/// inverse-dynamics actions without the model or with several actions per plan.
+/// inverse-dynamics actions (or a start in them) without the model or with several actions per plan.
 fn check_sampler(model: &TrajectoryModel, config: &ControlConfig) -> Result<(), ControlError> {
     if config.nfe == 0 {
         return Err(ControlError::BadCommand { what: "NFE (at least 1)", value: 0.0 });
@@ -183,6 +223,11 @@ fn check_sampler(model: &TrajectoryModel, config: &ControlConfig) -> Result<(), 
     let beta = config.inverse_dynamics;
     if !(0.0..=1.0).contains(&beta) {
         return Err(ControlError::BadCommand { what: "inverse-dynamics share (0 to 1)", value: f64::from(beta) });
+    }
+    if config.start_actions == StartActions::InverseDynamics && model.inverse.is_none() {
+        return Err(ControlError::Sampler(
+            "a start in inverse dynamics' actions: the model directory has no inverse.safetensors (fit one with `flowmimic inverse`, or run with --start-actions pd-targets)".into(),
+        ));
     }
     if beta > 0.0 && model.inverse.is_none() {
         return Err(ControlError::Sampler(
@@ -252,7 +297,9 @@ impl<'m> Controller<'m> {
             )));
         }
         self.histories[e] = History::new(self.model.layout().spec);
-        start_from_clip(&mut self.envs[e], &mut self.histories[e], clip, frame, n_hist)?;
+        let inverse =
+            self.model.inverse.as_ref().filter(|_| self.config.start_actions == StartActions::InverseDynamics);
+        start_from_clip(&mut self.envs[e], &mut self.histories[e], clip, frame, n_hist, inverse)?;
         self.recent[e] = Recent::default();
         self.recent[e].observe(&self.envs[e].bodies());
         self.holds[e] = HeadingHold::default();

@@ -22,7 +22,7 @@ pub mod rollout;
 pub mod task;
 
 pub use adapt::Adaptive;
-pub use controller::{ControlConfig, Controller, StepOutcome, StepReport, run, start_from_clip};
+pub use controller::{ControlConfig, Controller, StartActions, StepOutcome, StepReport, run, start_from_clip};
 pub use costs::{Cost, Heading, Joystick, Pursuit, Reach, Sum};
 pub use history::History;
 pub use layout::Layout;

@@ -11,7 +11,7 @@
 //! inverse_dynamics = 0.2
 //! ```
 
-use crate::{Adaptive, ControlError};
+use crate::{Adaptive, ControlError, StartActions};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -36,6 +36,8 @@ pub struct Settings {
     pub guidance_interval: Option<[usize; 2]>,
     /// Walk up to a hand target (reach and compose).
     pub approach: Option<bool>,
+    /// The actions of the history an episode starts with.
+    pub start_actions: Option<StartActions>,
 }
 
 /// A model's recommended settings, per task.
@@ -68,6 +70,7 @@ impl Settings {
             acceleration: self.acceleration.or(under.acceleration),
             guidance_interval: self.guidance_interval.or(under.guidance_interval),
             approach: self.approach.or(under.approach),
+            start_actions: self.start_actions.or(under.start_actions),
         }
     }
 
@@ -78,7 +81,7 @@ impl Settings {
 
     /// The controller's settings for `seconds`, the defaults where absent ([`DEFAULT_NFE`],
     /// [`DEFAULT_SCALE`], the fixed scale, no inverse dynamics, the command's speed as given,
-    /// the default guidance interval).
+    /// the default guidance interval, a start in PD targets).
     pub fn control(
         &self,
         gradient: flowmimic_model::Gradient,
@@ -92,6 +95,7 @@ impl Settings {
             adaptive: reference.map(Adaptive::new).transpose()?,
             inverse_dynamics: self.inverse_dynamics.unwrap_or(0.0),
             acceleration: self.acceleration.unwrap_or(0.0),
+            start_actions: self.start_actions.unwrap_or_default(),
             ..crate::ControlConfig::new(
                 self.nfe.unwrap_or(DEFAULT_NFE),
                 self.guidance_scale.unwrap_or(DEFAULT_SCALE),

@@ -315,3 +315,50 @@ fn an_unguided_plan_asks_what_the_body_then_does() {
         );
     }
 }
+
+/// A clip holds poses, not the actions between them. Started in inverse dynamics' actions
+/// ([`StartActions::InverseDynamics`]), the history holds the clip's states and, as each action,
+/// what the model's inverse dynamics reads out of that frame and the next (the next in the
+/// frame's own character frame); in PD targets, the next frame's joint angles. A model without
+/// inverse dynamics is refused the first.
+#[test]
+fn a_start_in_inverse_dynamics_reads_each_action_out_of_the_clips_frames() {
+    use flowmimic_control::{History, StartActions, start_from_clip};
+    let h = Humanoid::new(SimConfig::default()).unwrap();
+    let clip = flowmimic_motion::straight_walk(&h).unwrap();
+    let model = shipped("fm");
+    let inverse = model.inverse.as_ref().expect("the shipped fm has inverse dynamics");
+    let (spec, frame) = (model.layout().spec, 40);
+    let started = |inverse| {
+        let (mut env, mut history) = (h.env(), History::new(spec));
+        start_from_clip(&mut env, &mut history, &clip, frame, spec.history, inverse).unwrap();
+        assert_eq!(env.qpos(), clip.qpos[frame].as_slice(), "the environment stands at the start frame");
+        history.conditioning()
+    };
+    let (pd_states, pd_actions) = started(None);
+    let (states, actions) = started(Some(inverse));
+    assert_eq!(states, pd_states, "the history's states are the clip's either way");
+
+    let mut env = h.env();
+    let mut at = |k: usize| {
+        env.reset(&clip.qpos[k], &clip.qvel[k]).unwrap();
+        env.bodies()
+    };
+    let first = frame - spec.history;
+    for (j, (read, pd)) in actions.chunks_exact(NUM_DOFS).zip(pd_actions.chunks_exact(NUM_DOFS)).enumerate() {
+        let now = at(first + j);
+        let next = at(first + j + 1).state_in(&now.frame());
+        let expected = inverse.actions(&[&now.state()[..], &next[..]].concat(), 1);
+        let gap = read.iter().zip(&expected).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
+        assert!(gap < 1e-4, "action {j}: {gap} from inverse dynamics' reading");
+        let targets = h.actions().action_for(&clip.qpos[first + j + 1][7..]);
+        assert_eq!(pd, targets.as_slice(), "action {j}: the PD targets of the next frame");
+        let apart = read.iter().zip(pd).map(|(a, b)| (a - b).abs()).sum::<f32>() / NUM_DOFS as f32;
+        assert!(apart > 0.01, "action {j}: inverse dynamics reads the PD targets back ({apart})");
+    }
+
+    let config = ControlConfig { start_actions: StartActions::InverseDynamics, ..ControlConfig::new(2, 0.0, 1.0) };
+    assert!(Controller::new(&model, &h, &clip, 1, &config).is_ok());
+    let err = Controller::new(&shipped("fm-walk"), &h, &clip, 1, &config).err().expect("refused").to_string();
+    assert!(err.contains("no inverse.safetensors") && err.contains("--start-actions pd-targets"), "{err}");
+}

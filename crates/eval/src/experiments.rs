@@ -8,7 +8,7 @@ use crate::protocols::{
 };
 use crate::sweep::{EvalModel, Experiment, Result, Rows, Summary, finish, sweep};
 use crate::{frechet_distance, gaussian};
-use flowmimic_control::{Adaptive, Hand, JoystickSegment, StepReport, Task};
+use flowmimic_control::{Adaptive, Hand, JoystickSegment, StartActions, StepReport, Task};
 use flowmimic_data::Dataset;
 use flowmimic_model::Gradient;
 use flowmimic_motion::Clip;
@@ -47,6 +47,8 @@ pub struct Study<'a> {
     pub inverse_dynamics: f32,
     /// The joystick velocity's most speed-up (m/s^2; 0: the command as given).
     pub acceleration: f32,
+    /// The actions of the history each trial starts with.
+    pub start_actions: StartActions,
     /// Where each point's rollout is written when its trials run (`None`: nowhere; stored
     /// points are not run again).
     pub rollouts: Option<&'a Path>,
@@ -100,6 +102,7 @@ impl Study<'_> {
             adaptive: self.adaptive,
             inverse_dynamics: self.inverse_dynamics,
             acceleration: self.acceleration,
+            start_actions: self.start_actions,
         }
     }
 
@@ -778,6 +781,7 @@ impl Study<'_> {
                             adaptive: None,
                             inverse_dynamics: 0.0,
                             acceleration: 0.0,
+                            start_actions: self.start_actions,
                         };
                         let e = protocols::guidance_effect(&self.bench(m), task, point, samples)?;
                         let g = serde_json::to_string(&gradient)?;

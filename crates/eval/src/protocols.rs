@@ -3,7 +3,8 @@
 
 use crate::{HAND_REACHED, composition_success, reach_errors, velocity_rmse};
 use flowmimic_control::{
-    Adaptive, ControlConfig, ControlError, Hand, JoystickSegment, Rollout, Steer, StepReport, Task, controller,
+    Adaptive, ControlConfig, ControlError, Hand, JoystickSegment, Rollout, StartActions, Steer, StepReport, Task,
+    controller,
 };
 use flowmimic_geom::{CharFrame, DVec3, wrap_angle};
 use flowmimic_model::{Gradient, TrajectoryModel};
@@ -50,6 +51,13 @@ pub struct Point {
     /// The joystick velocity's most speed-up (m/s^2; 0: the command as given).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub acceleration: f32,
+    /// The actions of the history each trial starts with.
+    #[serde(default, skip_serializing_if = "is_default")]
+    pub start_actions: StartActions,
+}
+
+fn is_default<T: Default + PartialEq>(value: &T) -> bool {
+    *value == T::default()
 }
 
 fn is_zero(value: &f32) -> bool {
@@ -76,6 +84,7 @@ impl Bench<'_> {
             execute: point.execute,
             inverse_dynamics: point.inverse_dynamics,
             acceleration: point.acceleration,
+            start_actions: point.start_actions,
             paced: false,
             seed: point.seed,
             kick_every: if kicks { 1.0 } else { 0.0 },
@@ -630,7 +639,8 @@ pub fn guidance_effect(
         let mut env = bench.humanoid.env();
         let mut history = History::new(layout.spec);
         let frame = controller::start_frame(bench.clip.len(), layout.spec.history, e);
-        controller::start_from_clip(&mut env, &mut history, bench.clip, frame, layout.spec.history)?;
+        let inverse = bench.model.inverse.as_ref().filter(|_| point.start_actions == StartActions::InverseDynamics);
+        controller::start_from_clip(&mut env, &mut history, bench.clip, frame, layout.spec.history, inverse)?;
         let (states, actions) = history.conditioning();
         cond.extend(layout.interleave(&states, &actions));
         let mut task = task.clone();

@@ -5,6 +5,7 @@
 
 use crate::mean_std;
 use crate::protocols::{Bench, Point};
+use flowmimic_control::StartActions;
 use flowmimic_model::TrajectoryModel;
 use flowmimic_motion::Clip;
 use flowmimic_plot::{Chart, Series};
@@ -123,6 +124,10 @@ impl Store {
         }
         if point.acceleration > 0.0 {
             steps += &format!("\0acceleration {}", point.acceleration);
+        }
+        if point.start_actions != StartActions::default() {
+            let inverse = m.inverse_content.as_deref().unwrap_or("none");
+            steps += &format!("\0start actions {:?} {inverse}", point.start_actions);
         }
         let inputs = format!("{:x}", Sha256::digest(format!("{}\0{settings}{steps}", m.content)));
         let model = format!("{}@{}", m.label, &inputs[..12]);
