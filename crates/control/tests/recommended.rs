@@ -39,6 +39,7 @@ fn a_bad_recommended_file_is_refused_with_its_name() {
         ("[walk]\nadaptive = -1.0\n", "adaptive"),
         ("[play]\nguidance_scale = -30.0\n", "guidance_scale"),
         ("[joystick]\nacceleration = -1.0\n", "[joystick] acceleration = -1"),
+        ("[walk]\nstart_actions = \"expert\"\n", "inverse-dynamics"),
     ] {
         std::fs::write(&file, text).unwrap();
         let err = Recommended::load(&dir).unwrap_err().to_string();
@@ -46,5 +47,8 @@ fn a_bad_recommended_file_is_refused_with_its_name() {
     }
     std::fs::write(&file, "[joystick]\nadaptive = 0.0\n").unwrap();
     assert_eq!(Recommended::load(&dir).unwrap().joystick.adaptive, Some(0.0), "0: the fixed scale");
+    std::fs::write(&file, "[walk]\nstart_actions = \"inverse-dynamics\"\n").unwrap();
+    let walk = Recommended::load(&dir).unwrap().walk;
+    assert_eq!(walk.start_actions, Some(flowmimic_control::StartActions::InverseDynamics));
     std::fs::remove_dir_all(&dir).ok();
 }
