@@ -137,11 +137,13 @@ pub struct GuidanceArgs {
     /// recommended.toml for the task, else 0).
     #[arg(long, allow_negative_numbers = true, value_name = "M_PER_S2")]
     pub acceleration: Option<f32>,
-    /// The actions of the history an episode starts with, where the start clip holds only
-    /// poses: pd-targets (each next frame's joint angles) or inverse-dynamics (what the model
-    /// directory's inverse dynamics reads out of each pair of frames, like the data's actions;
-    /// default: the model's recommended.toml for the task, else pd-targets).
-    #[arg(long, value_parser = parse_start_actions)]
+    /// The actions in the model's first history (the steps before the start frame, which the
+    /// first plan is conditioned on; a clip holds poses only): pd-targets, each next frame's
+    /// joint angles, or inverse-dynamics, what the model directory's inverse.safetensors reads
+    /// out of each frame and the next, like the experts' actions in the data (halves the arms
+    /// models' falls in the first 3 s of a walk; default: the model's recommended.toml for the
+    /// task, else pd-targets).
+    #[arg(long, value_parser = parse_start_actions, value_name = "pd-targets|inverse-dynamics")]
     pub start_actions: Option<StartActions>,
 }
 
