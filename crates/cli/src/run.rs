@@ -238,20 +238,13 @@ pub fn recommended(dir: &Path, task: &str) -> Result<Settings> {
     Ok(Recommended::load(dir)?.for_task(task))
 }
 
+/// `pd-targets` or `inverse-dynamics`, the names `recommended.toml` uses.
 fn parse_start_actions(text: &str) -> Result<StartActions, String> {
-    match text {
-        "pd-targets" => Ok(StartActions::PdTargets),
-        "inverse-dynamics" => Ok(StartActions::InverseDynamics),
-        _ => Err(format!("'{text}': use pd-targets or inverse-dynamics")),
-    }
+    serde_json::from_str(&format!("\"{text}\"")).map_err(|_| format!("'{text}': use pd-targets or inverse-dynamics"))
 }
 
 fn start_actions_name(a: StartActions) -> String {
-    match a {
-        StartActions::PdTargets => "pd-targets",
-        StartActions::InverseDynamics => "inverse-dynamics",
-    }
-    .to_string()
+    serde_json::to_string(&a).expect("json").trim_matches('"').to_string()
 }
 
 /// `start:end` with start < end: the solver steps guidance acts on.

@@ -3,7 +3,7 @@
 //! environments), steer it with the task's cost, execute its first action, repeat.
 
 use crate::adapt::{Adaptive, Recent};
-use crate::history::History;
+use crate::history::{History, root_pose};
 use crate::rollout::{Rollout, RolloutInfo};
 use crate::task::{HeadingHold, SpeedRamp, Steer, Task};
 use crate::{ControlError, Layout};
@@ -31,6 +31,20 @@ pub enum StartActions {
     /// experts' in the training data, whose PD targets lead the pose. From the generated straight walk it
     /// halves the arms models' falls in the first 3 s (docs/guidance.md, "A start in the data's actions").
     InverseDynamics,
+}
+
+impl StartActions {
+    /// The inverse dynamics this start reads its actions with: none for PD targets; for
+    /// inverse dynamics the model's, refused when it has none.
+    pub fn inverse(self, model: &TrajectoryModel) -> Result<Option<&InverseDynamics>, ControlError> {
+        match (self, model.inverse.as_ref()) {
+            (Self::PdTargets, _) => Ok(None),
+            (Self::InverseDynamics, Some(inverse)) => Ok(Some(inverse)),
+            (Self::InverseDynamics, None) => Err(ControlError::Sampler(
+                "a start in inverse dynamics' actions: the model directory has no inverse.safetensors (fit one with `flowmimic inverse`, or run with --start-actions pd-targets)".into(),
+            )),
+        }
+    }
 }
 
 /// Sampler and episode settings.
@@ -122,41 +136,46 @@ pub struct StepReport {
     pub physics_ms: f32,
 }
 
-/// Puts `env` at frame `frame` of `clip` and fills `history` with the N frames before it (their
-/// states, and as actions what `inverse` reads out of each frame and the next, or without it the
-/// PD targets of the following frame), so the model starts inside its training distribution.
+/// Puts `env` at frame `frame` of `clip` and fills `history` with the model's N frames before it
+/// (their states, and as actions what `start` says), so the model starts inside its training
+/// distribution.
 pub fn start_from_clip(
     env: &mut Env,
     history: &mut History,
     clip: &Clip,
     frame: usize,
-    n: usize,
-    inverse: Option<&InverseDynamics>,
+    model: &TrajectoryModel,
+    start: StartActions,
 ) -> Result<(), ControlError> {
-    let map = env.humanoid().actions().clone();
-    let first = frame.saturating_sub(n);
-    let mut kin = Vec::with_capacity(n + 1);
+    let inverse = start.inverse(model)?;
+    let first = frame.saturating_sub(model.layout().spec.history);
+    let mut bodies = Vec::with_capacity(frame + 1 - first);
     for k in first..=frame {
         env.reset(&clip.qpos[k], &clip.qvel[k])?;
-        let b = env.bodies();
-        let root = b.pos[0];
-        kin.push((b.state(), [root.x as f32, root.y as f32, heading(b.rot[0]) as f32]));
+        bodies.push(env.bodies());
     }
     let actions: Vec<Vec<f32>> = match inverse {
         Some(inverse) => {
-            let mut pairs = Vec::with_capacity(2 * STATE_DIM * n);
+            // Each frame's state and the next one's in its frame, re-expressed as in the data
+            // inverse dynamics was fitted on.
             let mut next = [0.0; STATE_DIM];
-            for w in kin.windows(2) {
-                pairs.extend_from_slice(&w[0].0);
-                reexpress(&w[1].0, w[1].1, w[0].1, &mut next);
-                pairs.extend_from_slice(&next);
-            }
-            inverse.actions(&pairs, kin.len() - 1).chunks_exact(NUM_DOFS).map(<[f32]>::to_vec).collect()
+            let pairs: Vec<f32> = bodies
+                .windows(2)
+                .flat_map(|w| {
+                    reexpress(&w[1].state(), root_pose(&w[1]), root_pose(&w[0]), &mut next);
+                    [w[0].state(), next]
+                })
+                .flatten()
+                .collect();
+            inverse.actions(&pairs, bodies.len() - 1).chunks_exact(NUM_DOFS).map(<[f32]>::to_vec).collect()
         }
-        None => (first..frame).map(|k| map.action_for(&clip.qpos[k + 1][7..])).collect(),
+        None => {
+            let map = env.humanoid().actions();
+            (first..frame).map(|k| map.action_for(&clip.qpos[k + 1][7..])).collect()
+        }
     };
-    for (j, (state, pose)) in kin.iter().enumerate() {
-        history.push(*state, *pose);
+    for (j, b) in bodies.iter().enumerate() {
+        history.observe(b);
         if let Some(a) = actions.get(j) {
             history.act(a);
         }
@@ -224,11 +243,7 @@ fn check_sampler(model: &TrajectoryModel, config: &ControlConfig) -> Result<(), 
     if !(0.0..=1.0).contains(&beta) {
         return Err(ControlError::BadCommand { what: "inverse-dynamics share (0 to 1)", value: f64::from(beta) });
     }
-    if config.start_actions == StartActions::InverseDynamics && model.inverse.is_none() {
-        return Err(ControlError::Sampler(
-            "a start in inverse dynamics' actions: the model directory has no inverse.safetensors (fit one with `flowmimic inverse`, or run with --start-actions pd-targets)".into(),
-        ));
-    }
+    config.start_actions.inverse(model)?;
     if beta > 0.0 && model.inverse.is_none() {
         return Err(ControlError::Sampler(
             "inverse-dynamics actions: the model directory has no inverse.safetensors (fit one with `flowmimic inverse`, or run with --inverse-dynamics 0)".into(),
@@ -297,9 +312,7 @@ impl<'m> Controller<'m> {
             )));
         }
         self.histories[e] = History::new(self.model.layout().spec);
-        let inverse =
-            self.model.inverse.as_ref().filter(|_| self.config.start_actions == StartActions::InverseDynamics);
-        start_from_clip(&mut self.envs[e], &mut self.histories[e], clip, frame, n_hist, inverse)?;
+        start_from_clip(&mut self.envs[e], &mut self.histories[e], clip, frame, self.model, self.config.start_actions)?;
         self.recent[e] = Recent::default();
         self.recent[e].observe(&self.envs[e].bodies());
         self.holds[e] = HeadingHold::default();

@@ -19,6 +19,12 @@ struct Step {
     action: Option<Vec<f32>>,
 }
 
+/// The root's pose (x, y, heading) as the history and the data store it beside each state.
+pub(crate) fn root_pose(bodies: &BodyKinematics) -> [f32; 3] {
+    let root = bodies.pos[0];
+    [root.x as f32, root.y as f32, heading(bodies.rot[0]) as f32]
+}
+
 /// A rolling buffer of the last N + 1 steps.
 #[derive(Clone, Debug)]
 pub struct History {
@@ -33,8 +39,7 @@ impl History {
 
     /// Records the current step's kinematics (call once per control step, before acting).
     pub fn observe(&mut self, bodies: &BodyKinematics) {
-        let root = bodies.pos[0];
-        self.push(bodies.state(), [root.x as f32, root.y as f32, heading(bodies.rot[0]) as f32]);
+        self.push(bodies.state(), root_pose(bodies));
     }
 
     /// Records a state (own frame) and its root pose directly.

@@ -329,14 +329,14 @@ fn a_start_in_inverse_dynamics_reads_each_action_out_of_the_clips_frames() {
     let model = shipped("fm");
     let inverse = model.inverse.as_ref().expect("the shipped fm has inverse dynamics");
     let (spec, frame) = (model.layout().spec, 40);
-    let started = |inverse| {
+    let started = |start| {
         let (mut env, mut history) = (h.env(), History::new(spec));
-        start_from_clip(&mut env, &mut history, &clip, frame, spec.history, inverse).unwrap();
+        start_from_clip(&mut env, &mut history, &clip, frame, &model, start).unwrap();
         assert_eq!(env.qpos(), clip.qpos[frame].as_slice(), "the environment stands at the start frame");
         history.conditioning()
     };
-    let (pd_states, pd_actions) = started(None);
-    let (states, actions) = started(Some(inverse));
+    let (pd_states, pd_actions) = started(StartActions::PdTargets);
+    let (states, actions) = started(StartActions::InverseDynamics);
     assert_eq!(states, pd_states, "the history's states are the clip's either way");
 
     let mut env = h.env();

@@ -639,8 +639,7 @@ pub fn guidance_effect(
         let mut env = bench.humanoid.env();
         let mut history = History::new(layout.spec);
         let frame = controller::start_frame(bench.clip.len(), layout.spec.history, e);
-        let inverse = bench.model.inverse.as_ref().filter(|_| point.start_actions == StartActions::InverseDynamics);
-        controller::start_from_clip(&mut env, &mut history, bench.clip, frame, layout.spec.history, inverse)?;
+        controller::start_from_clip(&mut env, &mut history, bench.clip, frame, bench.model, point.start_actions)?;
         let (states, actions) = history.conditioning();
         cond.extend(layout.interleave(&states, &actions));
         let mut task = task.clone();
