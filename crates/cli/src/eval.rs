@@ -5,9 +5,9 @@ use crate::progress::Progress;
 use crate::run::{DriveArgs, GuidanceArgs, recommended, start_clip};
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
-use flowmimic_control::StepReport;
+use flowmimic_control::{ControlConfig, StepReport};
 use flowmimic_eval::experiments::{Study, Trials};
-use flowmimic_eval::protocols::{ForestSetup, ReachSetup, STANDING_HEIGHTS};
+use flowmimic_eval::protocols::{ForestSetup, Point, STANDING_HEIGHTS, TargetHeights};
 use flowmimic_eval::sweep::{EvalModel, Rows};
 use flowmimic_sim::Humanoid;
 use std::path::{Path, PathBuf};
@@ -16,7 +16,8 @@ use std::sync::Arc;
 #[derive(Args, Clone)]
 pub struct Common {
     /// Models as LABEL=DIR (repeat); default the one `make run` trained, else the shipped
-    /// guidance model.
+    /// guidance model. Each runs at its own recommended.toml's settings for the protocol's task
+    /// where a flag leaves one out.
     #[arg(long = "model")]
     models: Vec<String>,
     /// Output directory for CSV, JSON, plots and report.md.
@@ -56,11 +57,11 @@ impl Common {
 /// The guidance scales a guided protocol is swept over, at one NFE.
 #[derive(Args, Clone)]
 pub struct Sweep {
-    /// Guidance scales (default: the first model's recommended w for the task, and 0 beside it
-    /// where the protocol compares with unguided walking: joystick, reach, waypoint).
+    /// Guidance scales (default: each model's recommended w for the task, and 0 beside it where
+    /// the protocol compares with unguided walking: joystick, reach, waypoint).
     #[arg(long, value_delimiter = ',')]
     pub scales: Vec<f32>,
-    /// Network evaluations per step (default: the first model's recommended, else 5).
+    /// Network evaluations per step (default: each model's recommended, else 5).
     #[arg(long)]
     pub nfe: Option<usize>,
 }
@@ -111,7 +112,7 @@ pub enum EvalCommand {
         standing: bool,
         /// Walk up to each target (a pursuit command toward a point beside it that brings the
         /// hand there) instead of walking on with the hand's cost alone (true without a value;
-        /// default: the first model's recommended, else false; not with --standing).
+        /// default: each model's recommended, else false; not with --standing).
         #[arg(long, num_args = 0..=1, default_missing_value = "true")]
         approach: Option<bool>,
     },
@@ -149,7 +150,7 @@ pub enum EvalCommand {
         #[arg(long, default_value_t = 1.2)]
         height: f64,
         /// Walk toward a point that brings the hand to the target, within 0.4 m of the waypoint,
-        /// instead of to the waypoint itself (true without a value; default: the first model's
+        /// instead of to the waypoint itself (true without a value; default: each model's
         /// recommended, else false).
         #[arg(long, num_args = 0..=1, default_missing_value = "true")]
         approach: Option<bool>,
@@ -173,7 +174,7 @@ pub enum EvalCommand {
         common: Common,
         #[arg(long, value_delimiter = ',', default_value = "1,3,10,30")]
         scales: Vec<f32>,
-        /// Network evaluations per step (default: the first model's recommended, else 5).
+        /// Network evaluations per step (default: each model's recommended, else 5).
         #[arg(long)]
         nfe: Option<usize>,
         /// Conditionings (start frames of the clip).
@@ -201,13 +202,15 @@ pub enum EvalCommand {
     },
 }
 
-fn load_models(specs: &[String]) -> Result<Vec<EvalModel>> {
+/// The models given as LABEL=DIR (default the one `make run` trained, else the shipped one),
+/// each with its settings for `task`: the flags in `drive` over its recommended.toml.
+fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<EvalModel>> {
     let defaults;
-    let specs = if specs.is_empty() {
+    let specs = if common.models.is_empty() {
         defaults = [format!("fm={}", crate::paths::model_or_default(None).display())];
         &defaults[..]
     } else {
-        specs
+        &common.models[..]
     };
     specs
         .iter()
@@ -215,7 +218,24 @@ fn load_models(specs: &[String]) -> Result<Vec<EvalModel>> {
             let (label, dir) = s.split_once('=').with_context(|| format!("--model {s}: use LABEL=DIR"))?;
             let dir = crate::paths::resolve(Path::new(dir));
             let model = crate::run::load_model(&dir)?;
-            lib(EvalModel::new(label, &dir, model))
+            eprint!("{label}: ");
+            let chosen = drive.choose(&recommended(&dir, task)?, task)?;
+            let control = ControlConfig { execute: common.execute, ..chosen.control(drive.guidance.gradient, 0.0) };
+            crate::run::check_sampler(&model, &dir, &control)?;
+            let sampler = Point {
+                nfe: chosen.nfe,
+                scale: chosen.guidance_scale,
+                execute: common.execute,
+                seed: common.seed,
+                gradient: drive.guidance.gradient,
+                guidance_steps: chosen.guidance_interval,
+                adaptive: chosen.adaptive,
+                inverse_dynamics: chosen.inverse_dynamics,
+                acceleration: chosen.acceleration,
+                start_actions: chosen.start_actions,
+                approach: chosen.approach,
+            };
+            lib(EvalModel::new(label, &dir, model, sampler))
         })
         .collect()
 }
@@ -235,9 +255,9 @@ fn progress_for(total_steps: usize) -> (Progress, impl Fn(&Progress, &StepReport
 pub const REACH_HEIGHTS: [f64; 2] = [0.9, 1.5];
 
 /// `--heights LOW,HIGH`: finite, ordered, within the hand targets' 0-2.5 m.
-fn reach_heights(h: &[f64]) -> Result<(f64, f64)> {
+fn reach_heights(h: &[f64]) -> Result<TargetHeights> {
     match *h {
-        [low, high] if (0.0..=2.5).contains(&low) && (low..=2.5).contains(&high) => Ok((low, high)),
+        [low, high] if (0.0..=2.5).contains(&low) && (low..=2.5).contains(&high) => Ok(TargetHeights { low, high }),
         _ => anyhow::bail!("--heights {h:?}: give LOW,HIGH in metres with 0 <= LOW <= HIGH <= 2.5"),
     }
 }
@@ -273,12 +293,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         | EvalCommand::Guidance { common, .. }
         | EvalCommand::Latency { common, .. } => common.clone(),
     };
-    let models = load_models(&common.models)?;
-    let clip = match &cmd {
-        EvalCommand::Reach { standing: true, .. } if common.clip.is_none() => flowmimic_motion::standing(humanoid)?,
-        _ => start_clip(humanoid, common.clip.as_deref())?,
-    };
-    // Settings left out come from the first model's recommended ones for the protocol's task.
+    // Settings left out come from each model's recommended ones for the protocol's task.
     let (task, nfe, approach) = match &cmd {
         EvalCommand::Joystick { sweep, .. } => ("joystick", sweep.nfe, None),
         EvalCommand::Guidance { nfe, .. } => ("joystick", *nfe, None),
@@ -289,11 +304,10 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         _ => ("walk", None, None),
     };
     let drive = DriveArgs { nfe, guidance_scale: None, approach, guidance: common.guidance };
-    let chosen = drive.choose(&recommended(&models[0].dir, task)?, task)?;
-    let scales = |given: &[f32], unguided: bool| match (given.is_empty(), unguided) {
-        (false, _) => given.to_vec(),
-        (true, true) => vec![0.0, chosen.guidance_scale],
-        (true, false) => vec![chosen.guidance_scale],
+    let models = load_models(&common, &drive, task)?;
+    let clip = match &cmd {
+        EvalCommand::Reach { standing: true, .. } if common.clip.is_none() => flowmimic_motion::standing(humanoid)?,
+        _ => start_clip(humanoid, common.clip.as_deref())?,
     };
     let rollouts = common.save_rollouts.then(|| common.out.join("rollouts"));
     let study = Study {
@@ -303,44 +317,32 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         out: &common.out,
         quick: common.quick,
         trials: common.trials,
-        seed: common.seed,
-        execute: common.execute,
-        gradient: common.guidance.gradient,
-        guidance_steps: chosen.guidance_interval,
-        adaptive: chosen.adaptive,
-        inverse_dynamics: chosen.inverse_dynamics,
-        acceleration: chosen.acceleration,
-        start_actions: chosen.start_actions,
         rollouts: rollouts.as_deref(),
         progress: &with_progress,
     };
-    let reach_setup = |heights: &[f64]| -> Result<ReachSetup> {
-        Ok(ReachSetup { heights: reach_heights(heights)?, approach: chosen.approach })
-    };
     lib(match &cmd {
         EvalCommand::Survival { nfe, seconds, .. } => study.survival(nfe, *seconds),
-        EvalCommand::Joystick { sweep, schedule: None, .. } => study.joystick(&scales(&sweep.scales, true), chosen.nfe),
+        EvalCommand::Joystick { sweep, schedule: None, .. } => study.joystick(&sweep.scales),
         EvalCommand::Joystick { sweep, schedule: Some(text), .. } => {
-            study.joystick_schedule(&scales(&sweep.scales, true), chosen.nfe, &crate::run::schedule(text)?)
+            study.joystick_schedule(&sweep.scales, &crate::run::schedule(text)?)
         }
         EvalCommand::Reach { sweep, heights, standing: true, .. } => {
-            let heights = if heights.is_empty() { STANDING_HEIGHTS } else { reach_heights(heights)? };
-            study.reach_standing(&scales(&sweep.scales, true), chosen.nfe, heights)
+            let heights =
+                if heights.is_empty() { STANDING_HEIGHTS } else { reach_heights(heights).map(|h| (h.low, h.high))? };
+            study.reach_standing(&sweep.scales, heights)
         }
         EvalCommand::Reach { sweep, heights, .. } => {
             let heights = if heights.is_empty() { &REACH_HEIGHTS[..] } else { heights };
-            study.reach(&scales(&sweep.scales, true), chosen.nfe, reach_setup(heights)?)
+            study.reach(&sweep.scales, reach_heights(heights)?)
         }
-        EvalCommand::Waypoint { sweep, .. } => study.waypoint(&scales(&sweep.scales, true), chosen.nfe),
+        EvalCommand::Waypoint { sweep, .. } => study.waypoint(&sweep.scales),
         EvalCommand::Forest { sweep, moving, blind, .. } => {
-            study.forest(&scales(&sweep.scales, false), chosen.nfe, ForestSetup { moving: *moving, blind: *blind })
+            study.forest(&sweep.scales, ForestSetup { moving: *moving, blind: *blind })
         }
-        EvalCommand::Compose { sweep, height, .. } => {
-            study.compose(&scales(&sweep.scales, false), chosen.nfe, reach_setup(&[*height, *height])?)
-        }
+        EvalCommand::Compose { sweep, height, .. } => study.compose(&sweep.scales, reach_heights(&[*height, *height])?),
         EvalCommand::Quality { dataset, nfe, .. } => study.quality(dataset, nfe),
         EvalCommand::Latency { nfe, guided, .. } => study.latency(nfe, *guided),
-        EvalCommand::Guidance { scales, samples, .. } => study.guidance(scales, chosen.nfe, *samples),
+        EvalCommand::Guidance { scales, samples, .. } => study.guidance(scales, *samples),
         EvalCommand::Outcome { .. } => unreachable!("printed above, without models"),
     })
 }

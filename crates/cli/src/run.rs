@@ -459,6 +459,11 @@ pub fn load_model(dir: &Path) -> Result<TrajectoryModel> {
 }
 
 /// The clip a run starts from: a file, or the generated 10 s straight walk.
+/// Refuses settings the model in `dir` cannot run, naming the folder, before a run begins.
+pub fn check_sampler(model: &TrajectoryModel, dir: &Path, control: &ControlConfig) -> Result<()> {
+    flowmimic_control::controller::check_sampler(model, control).with_context(|| format!("{}", dir.display()))
+}
+
 pub fn start_clip(humanoid: &Arc<Humanoid>, file: Option<&Path>) -> Result<Clip> {
     Ok(match file {
         Some(f) => Clip::load(humanoid, f)?,
@@ -473,6 +478,7 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     let chosen = args.drive.choose(&recommended(&model_dir, &name)?, &name)?;
     let task = args.task(chosen.approach)?;
     let control = args.control(&chosen);
+    check_sampler(&model, &model_dir, &control)?;
     if args.task == TaskKind::Joystick {
         let length = task.schedule_seconds();
         if control.seconds < length - 1e-9 {

@@ -231,15 +231,36 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     let share = 100.0 * low.iter().sum::<f64>() / low.len() as f64;
     assert!(text.contains("| targets below 0.9 m: within 0.10 m / falls |"), "{text}");
     assert!(text.contains(&format!(" of {share:.0}% |")), "{share}% low in the CSV:\n{text}");
-    let text = ok(dir, &["eval", "waypoint", "--model", "fm=fm", "--scales", "10", "--trials", "1", "-o", "eval"]);
+    // Two models in one sweep, each at its own recommended.toml's settings.
+    std::fs::write(dir.join("fm/recommended.toml"), "[waypoint]\nguidance_scale = 10.0\ninverse_dynamics = 0.5\n")
+        .unwrap();
+    std::fs::write(dir.join("ddpm/recommended.toml"), "[waypoint]\nnfe = 2\nguidance_scale = 20.0\n").unwrap();
+    let text =
+        ok(dir, &["eval", "waypoint", "--model", "fm=fm", "--model", "ddpm=ddpm", "--trials", "1", "-o", "eval"]);
     assert!(text.contains("| arrived |") && dir.join("eval/waypoint.csv").exists(), "{text}");
+    let rows: Vec<String> = text
+        .lines()
+        .filter(|l| l.starts_with("| fm |") || l.starts_with("| ddpm |"))
+        .map(|l| l.split('|').take(3).collect::<Vec<_>>().join("|").trim().to_string())
+        .collect();
+    assert_eq!(rows, ["| fm | 0", "| fm | 10", "| ddpm | 0", "| ddpm | 20"], "{text}");
+    let report = std::fs::read_to_string(dir.join("eval/report.md")).unwrap();
+    assert!(
+        report.contains("at NFE 5, inverse dynamics 0.5; `ddpm`") && report.contains("at NFE 2, default settings."),
+        "{report}"
+    );
+    let json = std::fs::read_to_string(dir.join("eval/waypoint.json")).unwrap();
+    assert_eq!(json.matches("\"inverse_dynamics\": 0.5").count(), 2, "{json}");
+    for file in ["fm", "ddpm"] {
+        std::fs::remove_file(dir.join(file).join("recommended.toml")).unwrap();
+    }
     // Guiding the last solver step too is another point: measured anew and said in the report.
     let last = ["eval", "joystick", "--model", "fm=fm", "--scales", "10", "--trials", "1", "-o", "eval"];
     let text = ok(dir, &[&last[..], &["--guidance-interval", "0:5"]].concat());
     assert!(!text.contains("reusing"), "a stored result answered another guidance interval: {text}");
     assert!(text.contains("| 10 | ") && text.contains(" | - | "), "no unguided point to divide by: {text}");
     let report = std::fs::read_to_string(dir.join("eval/report.md")).unwrap();
-    assert!(report.contains("Guidance on solver steps 0 to 4 of 5."), "{report}");
+    assert!(report.contains("at NFE 5, guidance on solver steps 0 to 4."), "{report}");
     let (refused, text) = flowmimic(dir, &[&last[..], &["--guidance-interval", "0:9"]].concat());
     assert!(!refused && text.contains("need start < end <= NFE (5)"), "{text}");
     let (refused, text) = flowmimic(dir, &["run", "--model", "fm", "--task", "reach", "--target", "1,NaN,1"]);

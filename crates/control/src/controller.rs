@@ -227,8 +227,9 @@ pub struct StepOutcome {
 }
 
 /// Refuses sampler settings that cannot run: no solver steps, a negative or NaN scale,
-/// inverse-dynamics actions (or a start in them) without the model or with several actions per plan.
-fn check_sampler(model: &TrajectoryModel, config: &ControlConfig) -> Result<(), ControlError> {
+/// inverse-dynamics actions (or a start in them) without the model or with several actions per
+/// plan. [`run`] checks too; a command line checks first, before it says the run began.
+pub fn check_sampler(model: &TrajectoryModel, config: &ControlConfig) -> Result<(), ControlError> {
     if config.nfe == 0 {
         return Err(ControlError::BadCommand { what: "NFE (at least 1)", value: 0.0 });
     }

@@ -52,7 +52,7 @@ pub enum ControlError {
     BadCommand { what: &'static str, value: f64 },
     #[error("cannot start: {0}")]
     Start(String),
-    #[error("bad sampler setting: {0}")]
+    #[error("{0}")]
     Sampler(String),
     #[error("the model produced a non-finite action (environment {env}, step {step}, hinge {index})")]
     NonFinite { env: usize, step: usize, index: usize },

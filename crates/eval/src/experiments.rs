@@ -4,11 +4,11 @@
 
 use crate::outcome::{FOLLOWED_SPEED, FOLLOWED_YAW_RATE, followed};
 use crate::protocols::{
-    self, Bench, FOREST_CLEAR, FOREST_SECONDS, FOREST_WIDTH, ForestSetup, Point, ReachSetup, SEGMENT_SETTLE,
+    self, Bench, FOREST_CLEAR, FOREST_SECONDS, FOREST_WIDTH, ForestSetup, Point, SEGMENT_SETTLE, TargetHeights,
 };
 use crate::sweep::{EvalModel, Experiment, Result, Rows, Summary, finish, sweep};
 use crate::{frechet_distance, gaussian};
-use flowmimic_control::{Adaptive, Hand, JoystickSegment, StartActions, StepReport, Task};
+use flowmimic_control::{Hand, JoystickSegment, StepReport, Task};
 use flowmimic_data::Dataset;
 use flowmimic_model::Gradient;
 use flowmimic_motion::Clip;
@@ -35,20 +35,6 @@ pub struct Study<'a> {
     pub quick: bool,
     /// Trials per point, instead of the protocol's own count.
     pub trials: Option<usize>,
-    pub seed: u64,
-    /// Actions executed per sampled trajectory.
-    pub execute: usize,
-    pub gradient: Gradient,
-    /// Guided solver steps `start..end` (`None`: all but the last quarter).
-    pub guidance_steps: Option<(usize, usize)>,
-    /// Adaptive guidance's reference error (`None`: the fixed scale).
-    pub adaptive: Option<Adaptive>,
-    /// Share of the executed action taken from inverse dynamics (0: the plan's own).
-    pub inverse_dynamics: f32,
-    /// The joystick velocity's most speed-up (m/s^2; 0: the command as given).
-    pub acceleration: f32,
-    /// The actions of the history each trial starts with.
-    pub start_actions: StartActions,
     /// Where each point's rollout is written when its trials run (`None`: nowhere; stored
     /// points are not run again).
     pub rollouts: Option<&'a Path>,
@@ -91,27 +77,23 @@ impl Study<'_> {
         m.bench(self.humanoid, self.clip, self.rollouts)
     }
 
-    fn point(&self, nfe: usize, scale: f32) -> Point {
-        Point {
-            nfe,
-            scale,
-            execute: self.execute,
-            seed: self.seed,
-            gradient: self.gradient,
-            guidance_steps: self.guidance_steps,
-            adaptive: self.adaptive,
-            inverse_dynamics: self.inverse_dynamics,
-            acceleration: self.acceleration,
-            start_actions: self.start_actions,
+    /// Each model at each of `nfe`, at guidance scale `scale`.
+    fn by_nfe(nfe: &[usize], scale: f32) -> impl Fn(&EvalModel) -> Vec<Point> {
+        move |m| nfe.iter().map(|&nfe| Point { nfe, scale, ..m.sampler }).collect()
+    }
+
+    /// Each model at each of `scales`; none given, at its own scale, beside w 0 when
+    /// `unguided` (the protocols that compare with unguided walking).
+    fn by_scale(scales: &[f32], unguided: bool) -> impl Fn(&EvalModel) -> Vec<Point> {
+        move |m| {
+            let mut w = match (scales.is_empty(), unguided) {
+                (false, _) => scales.to_vec(),
+                (true, true) => vec![0.0, m.sampler.scale],
+                (true, false) => vec![m.sampler.scale],
+            };
+            w.dedup();
+            w.into_iter().map(|scale| Point { scale, ..m.sampler }).collect()
         }
-    }
-
-    fn by_nfe(&self, nfe: &[usize]) -> Vec<Point> {
-        nfe.iter().map(|&n| self.point(n, 0.0)).collect()
-    }
-
-    fn by_scale(&self, scales: &[f32], nfe: usize) -> Vec<Point> {
-        scales.iter().map(|&w| self.point(nfe, w)).collect()
     }
 
     /// What besides the model and the point determines an experiment's results (the start
@@ -121,30 +103,26 @@ impl Study<'_> {
         if extra.is_empty() { clip } else { format!("{clip}; {extra}") }
     }
 
-    /// A guided protocol swept over guidance `scales` at `nfe`, `trials` trials a point lasting
-    /// `steps` control steps; `rows` runs a point's trials, `row` and `notes` write it down.
+    /// A guided protocol swept over guidance `scales` (each model's own, and w 0 when
+    /// `unguided`, if none given), `trials` trials a point lasting `steps` control steps; `rows`
+    /// runs a point's trials, `row` and `notes` write it down.
     fn guided_sweep(
         &self,
         exp: &Experiment,
-        (scales, nfe, trials, steps): (&[f32], usize, usize, usize),
+        (scales, unguided, trials, steps): (&[f32], bool, usize, usize),
         rows: impl Fn(&Bench, Point, &dyn Fn(&StepReport)) -> Rows,
         row: impl Fn(&EvalModel, &Summary, Option<&Summary>) -> String,
         notes: &str,
     ) -> Result<()> {
-        // The controller refuses an interval that does not fit the NFE.
-        let notes = match self.guidance_steps {
-            Some((a, b)) => format!("{notes} Guidance on solver steps {a} to {} of {nfe}.", b.saturating_sub(1)),
-            None => notes.to_string(),
-        };
         let (summaries, table) = sweep(
             exp,
             self.out,
             self.models,
-            (&self.by_scale(scales, nfe), trials, false),
+            (&Self::by_scale(scales, unguided), trials, false),
             |m, point| (self.progress)(steps, &|report| rows(&self.bench(m), point, report)),
             row,
         )?;
-        finish(self.out, self.models, (exp.name, exp.title), &notes, &summaries, table)
+        finish(self.out, self.models, (exp.name, exp.title), notes, &summaries, table)
     }
 
     /// Unguided walking under kicks against NFE (paper Fig. 2); `seconds` caps each episode
@@ -168,7 +146,7 @@ impl Study<'_> {
             &exp,
             self.out,
             self.models,
-            (&self.by_nfe(nfe), trials, true),
+            (&Self::by_nfe(nfe, 0.0), trials, true),
             |m, point| {
                 (self.progress)(steps, &|report| {
                     let survived = protocols::survival(&self.bench(m), point, trials, seconds, report)?;
@@ -176,7 +154,7 @@ impl Study<'_> {
                 })
             },
             |m, s, _| {
-                let paper = match s.nfe {
+                let paper = match s.point.nfe {
                     1 => "280 / 30",
                     5 => "820 / 280",
                     20 => "≈470 / ≈470",
@@ -184,20 +162,19 @@ impl Study<'_> {
                 };
                 format!(
                     "| {} | {} | {} | {:.0} ± {:.0} | {paper} |",
-                    m.label, s.objective, s.nfe, s.mean["steps"], s.std["steps"]
+                    m.label, s.objective, s.point.nfe, s.mean["steps"], s.std["steps"]
                 )
             },
         )?;
         let notes = format!(
             "Unguided walking, a random planar root-velocity kick of uniform 0-0.5 m/s in a uniform direction every 1 s, \
-             failure when the head is below 0.2 m; {trials} trials per point, episode cap {seconds:.1} s ({steps} steps), seed {}.",
-            self.seed
+             failure when the head is below 0.2 m; {trials} trials per point, episode cap {seconds:.1} s ({steps} steps)."
         );
         finish(self.out, self.models, (exp.name, exp.title), &notes, &summaries, table)
     }
 
     /// Forward, backward, turn left and right, 3 s each, against guidance scale (paper Fig. 3).
-    pub fn joystick(&self, scales: &[f32], nfe: usize) -> Result<()> {
+    pub fn joystick(&self, scales: &[f32]) -> Result<()> {
         let trials = self.trials(10, 2);
         let exp = Experiment {
             name: "joystick",
@@ -224,11 +201,11 @@ impl Study<'_> {
             plot: "velocity_rmse",
             x_label: "guidance scale w",
             y_label: "velocity RMSE (m/s)",
-            header: "| model | H | w | velocity RMSE (m/s) | times unguided | per segment: forward / backward / left / right (m/s) | yaw-rate RMSE (rad/s) | forward / backward (m/s) | left / right (rad/s) | followed: forward / backward / left / right | falls |\n|---|---|---|---|---|---|---|---|---|---|---|",
+            header: "| model | H | w | velocity RMSE (m/s) | times unguided | segment RMSE: forward / backward / left / right (m/s) | yaw-rate RMSE (rad/s) | mean speed: forward / backward (m/s) | mean yaw rate: left / right (rad/s) | followed: forward / backward / left / right | falls |\n|---|---|---|---|---|---|---|---|---|---|---|",
         };
         let notes = format!(
             "Forward 1.0 m/s, backward 0.5 m/s, turn left and right (0.8 m/s at 0.6 rad/s), 3 s each; RMSE between commanded \
-             and achieved planar root velocity (character frame) over the steps before any fall; NFE {nfe}, {trials} trials. \
+             and achieved planar root velocity (character frame) over the steps before any fall; {trials} trials. \
              Per segment, the mean achieved forward velocity (forward, backward; commanded 1.0 and -0.5 m/s) and yaw rate \
              (turns; commanded 0.6 and -0.6 rad/s) from {SEGMENT_SETTLE} s after the segment's start, before any fall, and \
              the velocity RMSE of each segment over all its steps (the change of gait included); \
@@ -239,7 +216,7 @@ impl Study<'_> {
         );
         self.guided_sweep(
             &exp,
-            (scales, nfe, trials, 360),
+            (scales, true, trials, 360),
             |bench, point, report| {
                 let asked = Task::joystick_eval().joystick;
                 let r = protocols::joystick(bench, point, &asked, trials, report)?;
@@ -268,7 +245,7 @@ impl Study<'_> {
                     "| {} | {} | {} | {:.3} ± {:.3} | {share} | {:.2} / {:.2} / {:.2} / {:.2} | {:.3} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0} / {:.0} / {:.0} / {:.0}% | {:.0}% |",
                     m.label,
                     s.horizon,
-                    s.scale,
+                    s.point.scale,
                     s.mean["velocity_rmse"],
                     s.std["velocity_rmse"],
                     s.mean["forward_rmse"],
@@ -293,7 +270,7 @@ impl Study<'_> {
 
     /// Any joystick schedule of up to [`MAX_SEGMENTS`] segments, against guidance scale: per
     /// segment, the mean achieved speeds and yaw rate and the share of trials that followed it.
-    pub fn joystick_schedule(&self, scales: &[f32], nfe: usize, schedule: &[JoystickSegment]) -> Result<()> {
+    pub fn joystick_schedule(&self, scales: &[f32], schedule: &[JoystickSegment]) -> Result<()> {
         if schedule.is_empty() || schedule.len() > MAX_SEGMENTS {
             return Err(format!("a schedule of 1 to {MAX_SEGMENTS} segments, not {}", schedule.len()).into());
         }
@@ -316,7 +293,7 @@ impl Study<'_> {
         };
         let notes = format!(
             "Schedule `{text}` (`seconds:vx,vy,yaw_rate` segments); RMSE between commanded and achieved planar root \
-             velocity over the steps before any fall; NFE {nfe}, {trials} trials. Per segment, the mean achieved forward and \
+             velocity over the steps before any fall; {trials} trials. Per segment, the mean achieved forward and \
              sideways speed and yaw rate from {SEGMENT_SETTLE} s after its start, before any fall, what the plans asked over \
              the same steps (their mean velocity in their own heading and their turn rate over the horizon), and the share \
              of trials that followed it: within {FOLLOWED_SPEED} m/s and {FOLLOWED_YAW_RATE} rad/s of the command, with no fall \
@@ -325,7 +302,7 @@ impl Study<'_> {
         let steps = (schedule.iter().map(|s| s.seconds).sum::<f64>() * flowmimic_sim::CONTROL_HZ).round() as usize;
         self.guided_sweep(
             &exp,
-            (scales, nfe, trials, steps),
+            (scales, true, trials, steps),
             |bench, point, report| {
                 let r = protocols::joystick(bench, point, schedule, trials, report)?;
                 Ok(r.iter()
@@ -348,7 +325,7 @@ impl Study<'_> {
                             "| {} | {} | {} | {:.3} | {} | {:+.2}, {:+.2}, {:+.2} | {:+.2}, {:+.2}, {:+.2} | {:+.2}, {:+.2}, {:+.2} | {:.0}% | {:.0}% |",
                             m.label,
                             s.horizon,
-                            s.scale,
+                            s.point.scale,
                             s.mean["velocity_rmse"],
                             i + 1,
                             seg.vx,
@@ -372,12 +349,12 @@ impl Study<'_> {
     }
 
     /// Random right-hand targets while walking, against guidance scale (paper Fig. 4).
-    pub fn reach(&self, scales: &[f32], nfe: usize, setup: ReachSetup) -> Result<()> {
+    pub fn reach(&self, scales: &[f32], heights: TargetHeights) -> Result<()> {
         let trials = self.trials(20, 4);
-        let heights = setup.heights_label();
+        let label = heights.label();
         let exp = Experiment {
             name: "reach",
-            settings: self.settings(&format!("heights {heights}; approach {}", setup.approach)),
+            settings: self.settings(&format!("heights {label}")),
             title: "Hand reaching against guidance (paper Fig. 4)",
             columns: vec!["mean", "rms", "min", "reached", "fell"],
             plot: "mean",
@@ -385,17 +362,16 @@ impl Study<'_> {
             y_label: "hand-target distance (m)",
             header: "| model | H | w | mean distance (m) | RMS (m) | closest (m) | within 0.15 m | falls |\n|---|---|---|---|---|---|---|---|",
         };
-        let approach = if setup.approach { "walking up to the target (a pursuit command)" } else { "walking on" };
         let notes = format!(
-            "Right-hand targets 1.5-3 m ahead of each trial's start, within 0.5 m to either side, {heights} high; 4 s of \
-             guided {approach}; distance averaged over the trial (mean, RMS), the closest approach and the share of trials \
-             whose hand came within 0.15 m; NFE {nfe}, {trials} trials. Paper: RMSE ≈ 1.1 at w = 100."
+            "Right-hand targets 1.5-3 m ahead of each trial's start, within 0.5 m to either side, {label} high; 4 s of \
+             guided walking on (up to the target, a pursuit command, where a model's settings say approach); distance averaged over the trial (mean, RMS), the closest approach and the share of trials \
+             whose hand came within 0.15 m; {trials} trials. Paper: RMSE ≈ 1.1 at w = 100."
         );
         self.guided_sweep(
             &exp,
-            (scales, nfe, trials, 120),
+            (scales, true, trials, 120),
             |bench, point, report| {
-                let r = protocols::reach(bench, point, setup, trials, report)?;
+                let r = protocols::reach(bench, point, heights, trials, report)?;
                 Ok(r.iter().map(|t| vec![t.mean, t.rms, t.min, rate(t.reached()), rate(t.fell)]).collect())
             },
             |m, s, _| {
@@ -403,7 +379,7 @@ impl Study<'_> {
                     "| {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.0}% | {:.0}% |",
                     m.label,
                     s.horizon,
-                    s.scale,
+                    s.point.scale,
                     s.mean["mean"],
                     s.mean["rms"],
                     s.mean["min"],
@@ -417,7 +393,7 @@ impl Study<'_> {
 
     /// Reaching while standing: the share of trials whose hand comes within 0.10 m, and the
     /// median time to get there, against guidance scale.
-    pub fn reach_standing(&self, scales: &[f32], nfe: usize, heights: (f64, f64)) -> Result<()> {
+    pub fn reach_standing(&self, scales: &[f32], heights: (f64, f64)) -> Result<()> {
         let trials = self.trials(20, 4);
         let (low, high) = heights;
         let exp = Experiment {
@@ -438,13 +414,13 @@ impl Study<'_> {
              from where the right shoulder starts (horizontally, from straight ahead to straight out to the side); 4 s; \
              reached when the hand comes within {} m; the median time to reach counts a trial that never reaches as \
              never (a dash when half or more never do); targets below {} m, which ask the walker to bend, and the \
-             others each get their own share within reach and of falls; NFE {nfe}, {trials} trials.",
+             others each get their own share within reach and of falls; {trials} trials.",
             protocols::STANDING_REACHED,
             protocols::STANDING_LOW
         );
         self.guided_sweep(
             &exp,
-            (scales, nfe, trials, 120),
+            (scales, true, trials, 120),
             |bench, point, report| {
                 let r = protocols::reach_standing(bench, point, heights, trials, report)?;
                 Ok(r.iter()
@@ -468,7 +444,7 @@ impl Study<'_> {
                     "| {} | {} | {} | {:.3} | {:.0}% | {median} | {:.0}% | {} / {} of {:.0}% | {} / {} |",
                     m.label,
                     s.horizon,
-                    s.scale,
+                    s.point.scale,
                     s.mean["closest"],
                     100.0 * s.mean["reached"],
                     100.0 * s.mean["fell"],
@@ -484,7 +460,7 @@ impl Study<'_> {
     }
 
     /// Waypoint navigation: arrival rate against guidance scale.
-    pub fn waypoint(&self, scales: &[f32], nfe: usize) -> Result<()> {
+    pub fn waypoint(&self, scales: &[f32]) -> Result<()> {
         let trials = self.trials(20, 4);
         let exp = Experiment {
             name: "waypoint",
@@ -499,11 +475,11 @@ impl Study<'_> {
         let notes = format!(
             "Goal 3-4 m from each trial's start at a bearing within 90 degrees of its heading; 10 s; arrived when the pelvis \
              comes within 0.5 m of it; time to arrive averaged over the trials that arrive; the distance at the end (10 s or a fall) \
-             says whether it stays; NFE {nfe}, {trials} trials."
+             says whether it stays; {trials} trials."
         );
         self.guided_sweep(
             &exp,
-            (scales, nfe, trials, 300),
+            (scales, true, trials, 300),
             |bench, point, report| {
                 let r = protocols::waypoint(bench, point, trials, report)?;
                 Ok(r.iter()
@@ -516,7 +492,7 @@ impl Study<'_> {
                 format!(
                     "| {} | {} | {:.0}% | {:.2} | {} | {:.2} | {:.0}% |",
                     m.label,
-                    s.scale,
+                    s.point.scale,
                     100.0 * s.mean["arrived"],
                     s.mean["closest"],
                     time_to_arrive(s),
@@ -530,7 +506,7 @@ impl Study<'_> {
 
     /// Walking through a forest of obstacles to a goal: success rate against guidance scale,
     /// and each trial's collisions, fall and time to the goal.
-    pub fn forest(&self, scales: &[f32], nfe: usize, setup: ForestSetup) -> Result<()> {
+    pub fn forest(&self, scales: &[f32], setup: ForestSetup) -> Result<()> {
         let trials = self.trials(20, 4);
         let world = if setup.moving { "moving" } else { "standing" };
         let exp = Experiment {
@@ -560,12 +536,12 @@ impl Study<'_> {
         let notes = format!(
             "Goal 8-10 m straight ahead; {world}; {FOREST_SECONDS} s; success when the pelvis comes within 0.5 m of the goal \
              with no contact (MuJoCo's) between the humanoid and an obstacle and no fall; time to the goal averaged over the \
-             trials that arrive; NFE {nfe}, {trials} trials.{blind}"
+             trials that arrive; {trials} trials.{blind}"
         );
         let steps = (FOREST_SECONDS * flowmimic_sim::CONTROL_HZ) as usize;
         self.guided_sweep(
             &exp,
-            (scales, nfe, trials, steps),
+            (scales, false, trials, steps),
             |bench, point, report| {
                 let r = protocols::forest(bench, point, setup, trials, report)?;
                 eprintln!("trial  obstacles  success  arrived (s)  steps touching  fell");
@@ -596,7 +572,7 @@ impl Study<'_> {
                 format!(
                     "| {} | {} | {:.0}% | {:.0}% | {:.0}% | {:.0}% | {} |",
                     m.label,
-                    s.scale,
+                    s.point.scale,
                     100.0 * s.mean["success"],
                     100.0 * s.mean["arrived"],
                     100.0 * s.mean["contacts"],
@@ -609,16 +585,12 @@ impl Study<'_> {
     }
 
     /// A waypoint and a hand target at once: success rate against guidance scale.
-    pub fn compose(&self, scales: &[f32], nfe: usize, setup: ReachSetup) -> Result<()> {
-        let height = setup.heights_label();
-        let approach = match setup.approach {
-            true => format!(", walking up to the hand target within {} m of the waypoint", Task::WAYPOINT_RADIUS),
-            false => String::new(),
-        };
+    pub fn compose(&self, scales: &[f32], heights: TargetHeights) -> Result<()> {
+        let height = heights.label();
         let trials = self.trials(20, 4);
         let exp = Experiment {
             name: "compose",
-            settings: self.settings(&format!("target height {height}; approach {}", setup.approach)),
+            settings: self.settings(&format!("target height {height}")),
             title: "Composition: waypoint and reach",
             columns: vec!["success", "pelvis_min", "hand_min", "fell"],
             plot: "success",
@@ -627,22 +599,23 @@ impl Study<'_> {
             header: "| model | w | success | closest pelvis (m) | closest hand (m) | falls |\n|---|---|---|---|---|---|",
         };
         let notes = format!(
-            "Waypoint 3-4 m ahead and up to 1.5 m aside; right-hand target 0.4 m right of it at {height}; 10 s{approach}; success when \
-             the pelvis is within 0.5 m of the waypoint and the hand within 0.15 m of the target at the same step; NFE \
-             {nfe}, {trials} trials."
+            "Waypoint 3-4 m ahead and up to 1.5 m aside; right-hand target 0.4 m right of it at {height}; 10 s (where a model's settings \
+             say approach, walking up to the hand target within {} m of the waypoint); success when the pelvis is within \
+             0.5 m of the waypoint and the hand within 0.15 m of the target at the same step; {trials} trials.",
+            Task::WAYPOINT_RADIUS
         );
         self.guided_sweep(
             &exp,
-            (scales, nfe, trials, 300),
+            (scales, false, trials, 300),
             |bench, point, report| {
-                let r = protocols::compose(bench, point, setup, trials, report)?;
+                let r = protocols::compose(bench, point, heights, trials, report)?;
                 Ok(r.iter().map(|t| vec![rate(t.success), t.pelvis_min, t.hand_min, rate(t.fell)]).collect())
             },
             |m, s, _| {
                 format!(
                     "| {} | {} | {:.0}% | {:.2} | {:.2} | {:.0}% |",
                     m.label,
-                    s.scale,
+                    s.point.scale,
                     100.0 * s.mean["success"],
                     s.mean["pelvis_min"],
                     s.mean["hand_min"],
@@ -679,7 +652,7 @@ impl Study<'_> {
             &exp,
             self.out,
             self.models,
-            (&self.by_nfe(nfe), 1, true),
+            (&Self::by_nfe(nfe, 0.0), 1, true),
             |m, point| {
                 (self.progress)(steps, &|report| {
                     let f = protocols::generated_features(&self.bench(m), point, trials, seconds, report)?;
@@ -687,7 +660,7 @@ impl Study<'_> {
                     Ok(vec![vec![frechet_distance(&gm, &gs, &rm, &rs)]])
                 })
             },
-            |m, s, _| format!("| {} | {} | {:.4} |", m.label, s.nfe, s.mean["frechet"]),
+            |m, s, _| format!("| {} | {} | {:.4} |", m.label, s.point.nfe, s.mean["frechet"]),
         )?;
         let table = format!("{table}| reference against itself (floor) | – | {floor:.4} |\n");
         let notes = format!(
@@ -702,7 +675,6 @@ impl Study<'_> {
     /// Time per control step (batch 1) against NFE; guided at scale `guided` if given.
     pub fn latency(&self, nfe: &[usize], guided: Option<f32>) -> Result<()> {
         let scale = guided.unwrap_or(0.0);
-        let points: Vec<Point> = nfe.iter().map(|&n| self.point(n, scale)).collect();
         let exp = Experiment {
             name: if guided.is_some() { "latency_guided" } else { "latency" },
             settings: self.settings(""),
@@ -721,7 +693,7 @@ impl Study<'_> {
             &exp,
             self.out,
             self.models,
-            (&points, 1, true),
+            (&Self::by_nfe(nfe, scale), 1, true),
             |m, point| {
                 let (model_ms, physics_ms) = protocols::latency(&self.bench(m), point, 3.0)?;
                 Ok(vec![vec![model_ms, physics_ms, model_ms + physics_ms]])
@@ -731,7 +703,7 @@ impl Study<'_> {
                     "| {} | {} | {} | {:.2} | {:.2} | {:.0} |",
                     m.label,
                     s.objective,
-                    s.nfe,
+                    s.point.nfe,
                     s.mean["model_ms"],
                     s.mean["physics_ms"],
                     1e3 / s.mean["total_ms"]
@@ -739,7 +711,7 @@ impl Study<'_> {
             },
         )?;
         let walking = match guided {
-            Some(w) => format!("walking guided at w = {w} on the joystick schedule ({:?} gradient)", self.gradient),
+            Some(w) => format!("walking guided at w = {w} on the joystick schedule"),
             None => "unguided walking".into(),
         };
         let notes = format!(
@@ -751,7 +723,7 @@ impl Study<'_> {
 
     /// How far guidance moves the executed action against the later predicted actions, and the
     /// task's error, through the network and of the cost only (the model's output alone).
-    pub fn guidance(&self, scales: &[f32], nfe: usize, samples: usize) -> Result<()> {
+    pub fn guidance(&self, scales: &[f32], samples: usize) -> Result<()> {
         let walk = |vx, yaw_rate| JoystickSegment { seconds: 1.0, vx, vy: 0.0, yaw_rate };
         let tasks = [
             ("backward -0.5 m/s", Task { joystick: vec![walk(-0.5, 0.0)], ..Task::walk() }),
@@ -770,19 +742,8 @@ impl Study<'_> {
             for (name, task) in &tasks {
                 for gradient in [Gradient::ThroughNetwork, Gradient::CostOnly] {
                     for &scale in scales {
-                        let guidance_steps = self.guidance_steps;
-                        let point = Point {
-                            nfe,
-                            scale,
-                            execute: 1,
-                            seed: 0,
-                            gradient,
-                            guidance_steps,
-                            adaptive: None,
-                            inverse_dynamics: 0.0,
-                            acceleration: 0.0,
-                            start_actions: self.start_actions,
-                        };
+                        // The model's output alone: its NFE and guided solver steps count.
+                        let point = Point { scale, execute: 1, seed: 0, gradient, ..m.sampler };
                         let e = protocols::guidance_effect(&self.bench(m), task, point, samples)?;
                         let g = serde_json::to_string(&gradient)?;
                         println!(
@@ -797,7 +758,7 @@ impl Study<'_> {
                             e.error_guided,
                             e.error_unguided
                         );
-                        rows.push(serde_json::json!({"model": m.label, "task": name, "gradient": gradient, "scale": scale, "nfe": nfe, "samples": samples, "effect": e}));
+                        rows.push(serde_json::json!({"model": m.label, "task": name, "gradient": gradient, "scale": scale, "nfe": point.nfe, "samples": samples, "effect": e}));
                     }
                 }
             }

@@ -29,7 +29,8 @@ pub struct Bench<'a> {
     pub rollouts: Option<&'a Path>,
 }
 
-/// Sampler settings of one evaluated point.
+/// Sampler settings of one evaluated point: the NFE and guidance scale a sweep varies, and how
+/// guidance acts, which each model brings ([`crate::sweep::EvalModel::sampler`]).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Point {
     pub nfe: usize,
@@ -54,6 +55,45 @@ pub struct Point {
     /// The actions of the history each trial starts with.
     #[serde(default, skip_serializing_if = "is_default")]
     pub start_actions: StartActions,
+    /// With a hand target, walk up to it ([`Task::approach`]) instead of walking on (reach) or
+    /// to the waypoint (composition) with the hand's cost alone.
+    #[serde(default, skip_serializing_if = "is_default")]
+    pub approach: bool,
+}
+
+impl Point {
+    /// How guidance acts, for a report: the settings that differ from the controller's defaults
+    /// (`default settings` when none do).
+    pub fn describe(&self) -> String {
+        let mut said = Vec::new();
+        if self.gradient != Gradient::default() {
+            said.push(format!("gradient {}", serde_name(&self.gradient)));
+        }
+        if let Some((a, b)) = self.guidance_steps {
+            said.push(format!("guidance on solver steps {a} to {}", b.saturating_sub(1)));
+        }
+        if let Some(a) = self.adaptive {
+            said.push(format!("adaptive {}", a.reference));
+        }
+        if self.inverse_dynamics > 0.0 {
+            said.push(format!("inverse dynamics {}", self.inverse_dynamics));
+        }
+        if self.acceleration > 0.0 {
+            said.push(format!("acceleration {} m/s²", self.acceleration));
+        }
+        if self.start_actions != StartActions::default() {
+            said.push(format!("start actions {}", serde_name(&self.start_actions)));
+        }
+        if self.approach {
+            said.push("approach".into());
+        }
+        if said.is_empty() { "default settings".into() } else { said.join(", ") }
+    }
+}
+
+/// A unit enum's name as settings files and flags spell it (`inverse-dynamics`).
+fn serde_name(value: &impl Serialize) -> String {
+    serde_json::to_string(value).expect("json").trim_matches('"').to_string()
 }
 
 fn is_default<T: Default + PartialEq>(value: &T) -> bool {
@@ -237,48 +277,41 @@ impl ReachTrial {
     }
 }
 
-/// How the reach and composition protocols draw their hand targets' heights, and whether the
-/// walker walks up to the targets.
+/// The heights the reach and composition protocols draw their hand targets from (m).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ReachSetup {
-    /// Target heights are drawn uniformly from `low..high` (m); one height when they are equal.
-    pub heights: (f64, f64),
-    /// Walk up to the target ([`Task::approach`]) instead of walking on (reach) or to the
-    /// waypoint (composition) with the hand's cost alone.
-    pub approach: bool,
+pub struct TargetHeights {
+    pub low: f64,
+    pub high: f64,
 }
 
-impl ReachSetup {
-    /// A target height: uniform in `heights` (no draw when the range is one height).
-    fn height(&self, rng: &mut StdRng) -> f64 {
-        let (low, high) = self.heights;
-        if high > low { rng.random_range(low..high) } else { low }
+impl TargetHeights {
+    /// A target height: uniform in `low..high` (no draw when the range is one height).
+    fn draw(&self, rng: &mut StdRng) -> f64 {
+        if self.high > self.low { rng.random_range(self.low..self.high) } else { self.low }
     }
 
     /// The heights for a report: `0.85 m` or `0.7-1 m`.
-    pub fn heights_label(&self) -> String {
-        match self.heights {
-            (low, high) if high > low => format!("{low}-{high} m"),
-            (low, _) => format!("{low} m"),
-        }
+    pub fn label(&self) -> String {
+        if self.high > self.low { format!("{}-{} m", self.low, self.high) } else { format!("{} m", self.low) }
     }
 }
 
 /// Reach (paper Fig. 4): right-hand targets drawn 1.5-3 m ahead, up to 0.5 m to either side,
-/// at the setup's heights, of each trial's start; guided reaching while the model walks, 4 s.
+/// at `heights`, of each trial's start; guided reaching while the model walks (up to the
+/// target when the point says approach), 4 s.
 pub fn reach(
     bench: &Bench,
     point: Point,
-    setup: ReachSetup,
+    heights: TargetHeights,
     trials: usize,
     on_step: impl FnMut(&StepReport),
 ) -> Result<Vec<ReachTrial>, ControlError> {
     let mut rng = StdRng::seed_from_u64(point.seed ^ 0x5EAC);
     let tasks: Vec<Task> = (0..trials)
         .map(|e| {
-            let local = DVec3::new(rng.random_range(1.5..3.0), rng.random_range(-0.5..0.5), setup.height(&mut rng));
+            let local = DVec3::new(rng.random_range(1.5..3.0), rng.random_range(-0.5..0.5), heights.draw(&mut rng));
             let t = bench.start_to_world(e, local);
-            Task { reach: Some((Hand::Right, [t.x, t.y, local.z])), approach: setup.approach, ..Task::walk() }
+            Task { reach: Some((Hand::Right, [t.x, t.y, local.z])), approach: point.approach, ..Task::walk() }
         })
         .collect();
     let r = bench.run("reach", tasks, point, 4.0, false, on_step)?;
@@ -532,13 +565,13 @@ pub struct ComposeTrial {
 }
 
 /// Composition: walk to a waypoint 3-4 m ahead (up to 1.5 m to either side) and touch a
-/// target 0.4 m to its right at the setup's heights with the right hand, within 10 s. Success
+/// target 0.4 m to its right at `heights` with the right hand, within 10 s. Success
 /// when, at some step, the pelvis is within 0.5 m of the waypoint and the hand within 0.15 m
 /// of the target.
 pub fn compose(
     bench: &Bench,
     point: Point,
-    setup: ReachSetup,
+    heights: TargetHeights,
     trials: usize,
     on_step: impl FnMut(&StepReport),
 ) -> Result<Vec<ComposeTrial>, ControlError> {
@@ -546,11 +579,11 @@ pub fn compose(
     let tasks: Vec<Task> = (0..trials)
         .map(|e| {
             let (x, y) = (rng.random_range(3.0..4.0), rng.random_range(-1.5..1.5));
-            let height = setup.height(&mut rng);
+            let height = heights.draw(&mut rng);
             let goal = bench.start_to_world(e, DVec3::new(x, y, 0.0));
             let hand = bench.start_to_world(e, DVec3::new(x, y - 0.4, height));
             let reach = Some((Hand::Right, [hand.x, hand.y, height]));
-            Task { waypoint: Some([goal.x, goal.y]), reach, approach: setup.approach, ..Task::walk() }
+            Task { waypoint: Some([goal.x, goal.y]), reach, approach: point.approach, ..Task::walk() }
         })
         .collect();
     let r = bench.run("compose", tasks, point, 10.0, false, on_step)?;

@@ -20,7 +20,7 @@ use std::sync::Arc;
 pub type Error = Box<dyn std::error::Error + Send + Sync>;
 pub type Result<T> = std::result::Result<T, Error>;
 
-/// A loaded model and its label.
+/// A loaded model, its label and the settings it is evaluated with.
 pub struct EvalModel {
     pub label: String,
     pub dir: PathBuf,
@@ -31,11 +31,14 @@ pub struct EvalModel {
     /// SHA-256 of its inverse-dynamics file, if any: part of the key of points that execute
     /// its actions.
     pub inverse_content: Option<String>,
+    /// Its point for the protocol's task (a command line's flags over its `recommended.toml`):
+    /// a sweep varies the scale or the NFE and keeps the rest.
+    pub sampler: Point,
 }
 
 impl EvalModel {
-    /// A model loaded from `dir` under `label`, with its content hash.
-    pub fn new(label: &str, dir: &Path, model: TrajectoryModel) -> Result<Self> {
+    /// A model loaded from `dir` under `label`, with its content hash, evaluated at `sampler`.
+    pub fn new(label: &str, dir: &Path, model: TrajectoryModel, sampler: Point) -> Result<Self> {
         let mut h = Sha256::new();
         for file in [flowmimic_model::train::MODEL_FILE, flowmimic_model::train::STATS_FILE] {
             h.update(flowmimic_io::read(&dir.join(file))?);
@@ -46,7 +49,7 @@ impl EvalModel {
             Some(_) => Some(format!("{:x}", Sha256::digest(flowmimic_io::read(&inverse)?))),
             None => None,
         };
-        Ok(Self { label: label.to_string(), dir: dir.into(), model, content, inverse_content })
+        Ok(Self { label: label.to_string(), dir: dir.into(), model, content, inverse_content, sampler })
     }
 
     /// The protocols' bench for this model; each run's rollout is written in `rollouts`, if given.
@@ -129,6 +132,9 @@ impl Store {
             let inverse = m.inverse_content.as_deref().unwrap_or("none");
             steps += &format!("\0start actions {:?} {inverse}", point.start_actions);
         }
+        if point.approach {
+            steps += "\0approach";
+        }
         let inputs = format!("{:x}", Sha256::digest(format!("{}\0{settings}{steps}", m.content)));
         let model = format!("{}@{}", m.label, &inputs[..12]);
         format!("{model},{},{h},{nfe},{w},{},{k},{seed}", m.model.objective.name(), g.trim_matches('"'))
@@ -184,10 +190,9 @@ pub struct Summary {
     pub dir: String,
     pub objective: String,
     pub horizon: usize,
-    pub nfe: usize,
-    pub scale: f32,
-    pub execute: usize,
-    pub seed: u64,
+    /// NFE, scale, seed and every other sampler setting.
+    #[serde(flatten)]
+    pub point: Point,
     pub trials: usize,
     pub mean: BTreeMap<String, f64>,
     pub std: BTreeMap<String, f64>,
@@ -202,10 +207,7 @@ pub fn summary(m: &EvalModel, point: Point, rows: &[Vec<f64>], columns: &[&str])
         dir: m.dir.display().to_string(),
         objective: m.model.objective.name().into(),
         horizon: m.model.layout().spec.horizon,
-        nfe: point.nfe,
-        scale: point.scale,
-        execute: point.execute,
-        seed: point.seed,
+        point,
         trials: rows.len(),
         mean: s.iter().map(|(k, v)| (k.clone(), v.0)).collect(),
         std: s.iter().map(|(k, v)| (k.clone(), v.1)).collect(),
@@ -264,23 +266,7 @@ pub fn finish(
             }
         })
         .collect();
-    let described: Vec<String> = models
-        .iter()
-        .map(|m| {
-            let c = &m.model.config;
-            format!(
-                "`{}` = `{}` ({}, N {} H {}, d {} x {} layers, {} heads)",
-                m.label,
-                m.dir.display(),
-                m.model.objective.label(),
-                c.history,
-                c.horizon,
-                c.d_model,
-                c.layers,
-                c.heads
-            )
-        })
-        .collect();
+    let described: Vec<String> = models.iter().map(|m| described(m, summaries)).collect();
     write!(
         text,
         "\n## {title}\n\n`flowmimic {}` on {} ({})\n\nModels: {}.\n\n{notes}\n\n{table}\nRaw trials: `{name}.csv`; summary: `{name}.json`.\n\n![{name}]({name}.png)\n",
@@ -293,6 +279,28 @@ pub fn finish(
     println!("{table}");
     eprintln!("wrote {name}.csv, {name}.json, {name}.png/svg and appended to {}", report.display());
     Ok(())
+}
+
+/// A model for the report: label, folder, network, and the settings it ran at (the NFEs of its
+/// summaries, and how guidance acted).
+fn described(m: &EvalModel, summaries: &[Summary]) -> String {
+    let c = &m.model.config;
+    let mut nfe: Vec<usize> = summaries.iter().filter(|s| s.model == m.label).map(|s| s.point.nfe).collect();
+    nfe.dedup();
+    let nfe: Vec<String> = nfe.iter().map(ToString::to_string).collect();
+    format!(
+        "`{}` = `{}` ({}, N {} H {}, d {} x {} layers, {} heads) at NFE {}, {}",
+        m.label,
+        m.dir.display(),
+        m.model.objective.label(),
+        c.history,
+        c.horizon,
+        c.d_model,
+        c.layers,
+        c.heads,
+        nfe.join(", "),
+        m.sampler.describe()
+    )
 }
 
 /// UTC date and time from the system clock (no extra dependency for one timestamp).
@@ -329,15 +337,18 @@ pub struct Experiment {
     pub header: &'static str,
 }
 
-/// Runs (or reuses) every model at every point, one row per trial; plots `plot` against the
-/// swept value (NFE when `by_nfe`, else the guidance scale), and the fall rate when recorded;
+/// The points a sweep runs a model at.
+pub type Points<'a> = dyn Fn(&EvalModel) -> Vec<Point> + 'a;
+
+/// Runs (or reuses) every model at each of its `points`, one row per trial; plots `plot`
+/// against the swept value (NFE when `by_nfe`, else the guidance scale), and the fall rate when recorded;
 /// returns the summaries and the Markdown table, whose `row`s each see their model's unguided
 /// point (w 0) at the same NFE when the sweep has one.
 pub fn sweep(
     exp: &Experiment,
     out: &Path,
     models: &[EvalModel],
-    (points, trials, by_nfe): (&[Point], usize, bool),
+    (points, trials, by_nfe): (&Points, usize, bool),
     mut run: impl FnMut(&EvalModel, Point) -> Rows,
     row: impl Fn(&EvalModel, &Summary, Option<&Summary>) -> String,
 ) -> Result<(Vec<Summary>, String)> {
@@ -352,7 +363,8 @@ pub fn sweep(
     let (mut summaries, mut table) = (Vec::new(), format!("{}\n", exp.header));
     for m in models {
         let (mut line, mut band, mut fell) = (Vec::new(), Vec::new(), Vec::new());
-        for &point in points {
+        let points = points(m);
+        for &point in &points {
             eprintln!("{}: {} NFE {} w {} ({trials} trials)", exp.name, m.label, point.nfe, point.scale);
             let rows = stored.point(m, &exp.settings, point, trials, || run(m, point))?;
             let s = summary(m, point, &rows, &exp.columns);
@@ -366,7 +378,7 @@ pub fn sweep(
         }
         let own = &summaries[summaries.len() - points.len()..];
         for s in own {
-            let unguided = own.iter().find(|u| u.scale == 0.0 && u.nfe == s.nfe);
+            let unguided = own.iter().find(|u| u.point.scale == 0.0 && u.point.nfe == s.point.nfe);
             table.push_str(&row(m, s, unguided));
             table.push('\n');
         }
