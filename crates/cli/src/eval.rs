@@ -15,8 +15,8 @@ use std::sync::Arc;
 
 #[derive(Args, Clone)]
 pub struct Common {
-    /// Models as LABEL=DIR (repeat); default the one `make run` trained, else the shipped
-    /// guidance model. Each runs at its own recommended.toml's settings for the protocol's task
+    /// Models as LABEL=DIR or DIR (labelled by the folder's name; repeat); default the one `make
+    /// run` trained, else the shipped guidance model. Each runs at its own recommended.toml's settings for the protocol's task
     /// where a flag leaves one out.
     #[arg(long = "model")]
     models: Vec<String>,
@@ -57,8 +57,9 @@ impl Common {
 /// The guidance scales a guided protocol is swept over, at one NFE.
 #[derive(Args, Clone)]
 pub struct Sweep {
-    /// Guidance scales (default: each model's recommended w for the task, and 0 beside it where
-    /// the protocol compares with unguided walking: joystick, reach, waypoint).
+    /// Guidance scales, for every model (default: each model's recommended w for the task, else
+    /// 10, and 0 beside it where the protocol compares with unguided walking: joystick, reach,
+    /// waypoint).
     #[arg(long, value_delimiter = ',')]
     pub scales: Vec<f32>,
     /// Network evaluations per step (default: each model's recommended, else 5).
@@ -215,8 +216,16 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
     specs
         .iter()
         .map(|s| {
-            let (label, dir) = s.split_once('=').with_context(|| format!("--model {s}: use LABEL=DIR"))?;
-            let dir = crate::paths::resolve(Path::new(dir));
+            // A bare folder is labelled by its name.
+            let (label, dir) = match s.split_once('=') {
+                Some((label, dir)) => (label.to_string(), Path::new(dir)),
+                None => {
+                    let dir = Path::new(s);
+                    let name = dir.file_name().with_context(|| format!("--model {s}: give LABEL=DIR or a folder"))?;
+                    (name.to_string_lossy().into_owned(), dir)
+                }
+            };
+            let dir = crate::paths::resolve(dir);
             let model = crate::run::load_model(&dir)?;
             eprint!("{label}: ");
             let chosen = drive.choose(&recommended(&dir, task)?, task)?;
@@ -235,7 +244,7 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
                 start_actions: chosen.start_actions,
                 approach: chosen.approach,
             };
-            lib(EvalModel::new(label, &dir, model, sampler))
+            lib(EvalModel::new(&label, &dir, model, sampler))
         })
         .collect()
 }
@@ -305,6 +314,19 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     };
     let drive = DriveArgs { nfe, guidance_scale: None, approach, guidance: common.guidance };
     let models = load_models(&common, &drive, task)?;
+    let swept = match &cmd {
+        EvalCommand::Guidance { scales, .. } => scales,
+        EvalCommand::Joystick { sweep, .. }
+        | EvalCommand::Reach { sweep, .. }
+        | EvalCommand::Waypoint { sweep, .. }
+        | EvalCommand::Forest { sweep, .. }
+        | EvalCommand::Compose { sweep, .. } => &sweep.scales,
+        _ => &Vec::new(),
+    };
+    if !swept.is_empty() {
+        let w: Vec<String> = swept.iter().map(ToString::to_string).collect();
+        eprintln!("every model at w {} (flag), not the w above", w.join(", "));
+    }
     let clip = match &cmd {
         EvalCommand::Reach { standing: true, .. } if common.clip.is_none() => flowmimic_motion::standing(humanoid)?,
         _ => start_clip(humanoid, common.clip.as_deref())?,

@@ -235,8 +235,7 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     std::fs::write(dir.join("fm/recommended.toml"), "[waypoint]\nguidance_scale = 10.0\ninverse_dynamics = 0.5\n")
         .unwrap();
     std::fs::write(dir.join("ddpm/recommended.toml"), "[waypoint]\nnfe = 2\nguidance_scale = 20.0\n").unwrap();
-    let text =
-        ok(dir, &["eval", "waypoint", "--model", "fm=fm", "--model", "ddpm=ddpm", "--trials", "1", "-o", "eval"]);
+    let text = ok(dir, &["eval", "waypoint", "--model", "fm=fm", "--model", "ddpm", "--trials", "1", "-o", "eval"]);
     assert!(text.contains("| arrived |") && dir.join("eval/waypoint.csv").exists(), "{text}");
     let rows: Vec<String> = text
         .lines()
@@ -246,7 +245,8 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     assert_eq!(rows, ["| fm | 0", "| fm | 10", "| ddpm | 0", "| ddpm | 20"], "{text}");
     let report = std::fs::read_to_string(dir.join("eval/report.md")).unwrap();
     assert!(
-        report.contains("at NFE 5, inverse dynamics 0.5; `ddpm`") && report.contains("at NFE 2, default settings."),
+        report.contains("at NFE 5, adaptive off, inverse dynamics 0.5, start actions pd-targets; `ddpm`")
+            && report.contains("at NFE 2, adaptive off, inverse dynamics 0, start actions pd-targets."),
         "{report}"
     );
     let json = std::fs::read_to_string(dir.join("eval/waypoint.json")).unwrap();
@@ -260,7 +260,7 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     assert!(!text.contains("reusing"), "a stored result answered another guidance interval: {text}");
     assert!(text.contains("| 10 | ") && text.contains(" | - | "), "no unguided point to divide by: {text}");
     let report = std::fs::read_to_string(dir.join("eval/report.md")).unwrap();
-    assert!(report.contains("at NFE 5, guidance on solver steps 0 to 4."), "{report}");
+    assert!(report.contains("start actions pd-targets, guidance on solver steps 0 to 4."), "{report}");
     let (refused, text) = flowmimic(dir, &[&last[..], &["--guidance-interval", "0:9"]].concat());
     assert!(!refused && text.contains("need start < end <= NFE (5)"), "{text}");
     let (refused, text) = flowmimic(dir, &["run", "--model", "fm", "--task", "reach", "--target", "1,NaN,1"]);

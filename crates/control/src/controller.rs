@@ -41,7 +41,7 @@ impl StartActions {
             (Self::PdTargets, _) => Ok(None),
             (Self::InverseDynamics, Some(inverse)) => Ok(Some(inverse)),
             (Self::InverseDynamics, None) => Err(ControlError::Sampler(
-                "a start in inverse dynamics' actions: the model directory has no inverse.safetensors (fit one with `flowmimic inverse`, or run with --start-actions pd-targets)".into(),
+                "a start in inverse dynamics' actions: the model directory has no inverse.safetensors (fit one on the model's dataset with `flowmimic inverse DATASET --model DIR`, or run with --start-actions pd-targets)".into(),
             )),
         }
     }
@@ -247,7 +247,7 @@ pub fn check_sampler(model: &TrajectoryModel, config: &ControlConfig) -> Result<
     config.start_actions.inverse(model)?;
     if beta > 0.0 && model.inverse.is_none() {
         return Err(ControlError::Sampler(
-            "inverse-dynamics actions: the model directory has no inverse.safetensors (fit one with `flowmimic inverse`, or run with --inverse-dynamics 0)".into(),
+            "inverse-dynamics actions: the model directory has no inverse.safetensors (fit one on the model's dataset with `flowmimic inverse DATASET --model DIR`, or run with --inverse-dynamics 0)".into(),
         ));
     }
     if beta > 0.0 && config.execute != 1 {

@@ -41,67 +41,55 @@ pub struct Point {
     #[serde(default)]
     pub gradient: Gradient,
     /// Guided solver steps `start..end`; `None`: the controller's default.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(default)]
     pub guidance_steps: Option<(usize, usize)>,
     /// Adaptive guidance's reference error; `None`: the fixed scale.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[serde(default)]
     pub adaptive: Option<Adaptive>,
     /// Share of the executed action taken from inverse dynamics (0: the plan's own).
-    #[serde(default, skip_serializing_if = "is_zero")]
+    #[serde(default)]
     pub inverse_dynamics: f32,
     /// The joystick velocity's most speed-up (m/s^2; 0: the command as given).
-    #[serde(default, skip_serializing_if = "is_zero")]
+    #[serde(default)]
     pub acceleration: f32,
     /// The actions of the history each trial starts with.
-    #[serde(default, skip_serializing_if = "is_default")]
+    #[serde(default)]
     pub start_actions: StartActions,
     /// With a hand target, walk up to it ([`Task::approach`]) instead of walking on (reach) or
     /// to the waypoint (composition) with the hand's cost alone.
-    #[serde(default, skip_serializing_if = "is_default")]
+    #[serde(default)]
     pub approach: bool,
 }
 
 impl Point {
-    /// How guidance acts, for a report: the settings that differ from the controller's defaults
-    /// (`default settings` when none do).
+    /// How guidance acts, for a report: adaptive guidance, inverse dynamics and the start
+    /// actions always, and the other settings where they differ from the controller's defaults.
     pub fn describe(&self) -> String {
-        let mut said = Vec::new();
+        let adaptive = self.adaptive.map_or_else(|| "off".into(), |a| a.reference.to_string());
+        let mut said = vec![
+            format!("adaptive {adaptive}"),
+            format!("inverse dynamics {}", self.inverse_dynamics),
+            format!("start actions {}", serde_name(&self.start_actions)),
+        ];
         if self.gradient != Gradient::default() {
             said.push(format!("gradient {}", serde_name(&self.gradient)));
         }
         if let Some((a, b)) = self.guidance_steps {
             said.push(format!("guidance on solver steps {a} to {}", b.saturating_sub(1)));
         }
-        if let Some(a) = self.adaptive {
-            said.push(format!("adaptive {}", a.reference));
-        }
-        if self.inverse_dynamics > 0.0 {
-            said.push(format!("inverse dynamics {}", self.inverse_dynamics));
-        }
         if self.acceleration > 0.0 {
             said.push(format!("acceleration {} m/s²", self.acceleration));
-        }
-        if self.start_actions != StartActions::default() {
-            said.push(format!("start actions {}", serde_name(&self.start_actions)));
         }
         if self.approach {
             said.push("approach".into());
         }
-        if said.is_empty() { "default settings".into() } else { said.join(", ") }
+        said.join(", ")
     }
 }
 
 /// A unit enum's name as settings files and flags spell it (`inverse-dynamics`).
 fn serde_name(value: &impl Serialize) -> String {
     serde_json::to_string(value).expect("json").trim_matches('"').to_string()
-}
-
-fn is_default<T: Default + PartialEq>(value: &T) -> bool {
-    *value == T::default()
-}
-
-fn is_zero(value: &f32) -> bool {
-    *value == 0.0
 }
 
 impl Bench<'_> {
