@@ -306,6 +306,8 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     let (task, nfe, approach) = match &cmd {
         EvalCommand::Joystick { sweep, .. } => ("joystick", sweep.nfe, None),
         EvalCommand::Guidance { nfe, .. } => ("joystick", *nfe, None),
+        // Standing, there is nothing to walk up to.
+        EvalCommand::Reach { sweep, standing: true, .. } => ("reach", sweep.nfe, Some(false)),
         EvalCommand::Reach { sweep, approach, .. } => ("reach", sweep.nfe, *approach),
         EvalCommand::Waypoint { sweep, .. } | EvalCommand::Forest { sweep, .. } => ("waypoint", sweep.nfe, None),
         EvalCommand::Compose { sweep, approach, .. } => ("compose", sweep.nfe, *approach),
