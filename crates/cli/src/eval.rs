@@ -5,7 +5,7 @@ use crate::progress::Progress;
 use crate::run::{DriveArgs, GuidanceArgs, recommended, start_clip};
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
-use flowmimic_control::{ControlConfig, StepReport};
+use flowmimic_control::StepReport;
 use flowmimic_eval::experiments::{Study, Trials};
 use flowmimic_eval::protocols::{ForestSetup, Point, STANDING_HEIGHTS, TargetHeights};
 use flowmimic_eval::sweep::{EvalModel, Rows};
@@ -16,8 +16,8 @@ use std::sync::Arc;
 #[derive(Args, Clone)]
 pub struct Common {
     /// Models as LABEL=DIR or DIR (labelled by the folder's name; repeat); default the one `make
-    /// run` trained, else the shipped guidance model. Each runs at its own recommended.toml's settings for the protocol's task
-    /// where a flag leaves one out.
+    /// run` trained, else the shipped guidance model. Each runs at its own recommended.toml's
+    /// settings for the protocol's task where a flag leaves one out.
     #[arg(long = "model")]
     models: Vec<String>,
     /// Output directory for CSV, JSON, plots and report.md.
@@ -203,7 +203,7 @@ pub enum EvalCommand {
     },
 }
 
-/// The models given as LABEL=DIR (default the one `make run` trained, else the shipped one),
+/// The models given as LABEL=DIR or DIR (default the one `make run` trained, else the shipped one),
 /// each with its settings for `task`: the flags in `drive` over its recommended.toml.
 fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<EvalModel>> {
     let defaults;
@@ -229,8 +229,6 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
             let model = crate::run::load_model(&dir)?;
             eprint!("{label}: ");
             let chosen = drive.choose(&recommended(&dir, task)?, task)?;
-            let control = ControlConfig { execute: common.execute, ..chosen.control(drive.guidance.gradient, 0.0) };
-            crate::run::check_sampler(&model, &dir, &control)?;
             let sampler = Point {
                 nfe: chosen.nfe,
                 scale: chosen.guidance_scale,
@@ -244,6 +242,7 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
                 start_actions: chosen.start_actions,
                 approach: chosen.approach,
             };
+            crate::run::check_sampler(&model, &dir, &sampler.control(0.0))?;
             lib(EvalModel::new(&label, &dir, model, sampler))
         })
         .collect()

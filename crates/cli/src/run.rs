@@ -9,7 +9,7 @@ use flowmimic_control::{
 };
 use flowmimic_eval::HAND_REACHED;
 use flowmimic_eval::outcome::{BEFORE_FALL, FOLLOWED_SPEED, FOLLOWED_YAW_RATE, Outcome};
-use flowmimic_eval::protocols::SEGMENT_SETTLE;
+use flowmimic_eval::protocols::{SEGMENT_SETTLE, setting_name};
 use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_serve::play::PlayConfig;
@@ -189,7 +189,7 @@ impl DriveArgs {
         let model_interval = model.guidance_interval.map(|[a, b]| (a, b));
         pick("guidance steps", interval(g.guidance_interval), interval(model_interval), "all but the last quarter");
         pick("approach", self.approach.map(|a| a.to_string()), model.approach.map(|a| a.to_string()), "false");
-        let start = |a: Option<StartActions>| a.map(start_actions_name);
+        let start = |a: Option<StartActions>| a.map(|a| setting_name(&a));
         pick("start actions", start(g.start_actions), start(model.start_actions), "pd-targets");
         eprintln!("settings for {task}: {}", said.join(", "));
         let flags = Settings {
@@ -238,13 +238,13 @@ pub fn recommended(dir: &Path, task: &str) -> Result<Settings> {
     Ok(Recommended::load(dir)?.for_task(task))
 }
 
-/// `pd-targets` or `inverse-dynamics`, the names `recommended.toml` uses.
-fn parse_start_actions(text: &str) -> Result<StartActions, String> {
-    serde_json::from_str(&format!("\"{text}\"")).map_err(|_| format!("'{text}': use pd-targets or inverse-dynamics"))
+/// A setting by the name `recommended.toml` uses (`pd-targets`), else an error listing `choices`.
+fn parse_named<T: serde::de::DeserializeOwned>(text: &str, choices: &str) -> Result<T, String> {
+    serde_json::from_str(&format!("\"{text}\"")).map_err(|_| format!("'{text}': use {choices}"))
 }
 
-fn start_actions_name(a: StartActions) -> String {
-    serde_json::to_string(&a).expect("json").trim_matches('"').to_string()
+fn parse_start_actions(text: &str) -> Result<StartActions, String> {
+    parse_named(text, "pd-targets or inverse-dynamics")
 }
 
 /// `start:end` with start < end: the solver steps guidance acts on.
@@ -264,7 +264,7 @@ fn parse_adaptive(text: &str) -> Result<f32, String> {
 
 /// `through-network` or `cost-only`.
 fn parse_gradient(text: &str) -> Result<Gradient, String> {
-    serde_json::from_str(&format!("\"{text}\"")).map_err(|_| format!("'{text}': use through-network or cost-only"))
+    parse_named(text, "through-network or cost-only")
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -458,12 +458,12 @@ pub fn load_model(dir: &Path) -> Result<TrajectoryModel> {
     flowmimic_control::load_model(dir).with_context(|| format!("loading model {}", dir.display()))
 }
 
-/// The clip a run starts from: a file, or the generated 10 s straight walk.
 /// Refuses settings the model in `dir` cannot run, naming the folder, before a run begins.
 pub fn check_sampler(model: &TrajectoryModel, dir: &Path, control: &ControlConfig) -> Result<()> {
     flowmimic_control::controller::check_sampler(model, control).with_context(|| format!("{}", dir.display()))
 }
 
+/// The clip a run starts from: a file, or the generated 10 s straight walk.
 pub fn start_clip(humanoid: &Arc<Humanoid>, file: Option<&Path>) -> Result<Clip> {
     Ok(match file {
         Some(f) => Clip::load(humanoid, f)?,

@@ -745,12 +745,11 @@ impl Study<'_> {
                         // The model's output alone: its NFE and guided solver steps count.
                         let point = Point { scale, execute: 1, seed: 0, gradient, ..m.sampler };
                         let e = protocols::guidance_effect(&self.bench(m), task, point, samples)?;
-                        let g = serde_json::to_string(&gradient)?;
                         println!(
                             "{:<10} {:<36} {:<16} {:>6} {:>10.4} {:>10.4} {:>7.2} {:>10.3} {:>10.3}",
                             m.label,
                             name,
-                            g.trim_matches('"'),
+                            protocols::setting_name(&gradient),
                             scale,
                             e.first_action,
                             e.later_actions,

@@ -62,6 +62,21 @@ pub struct Point {
 }
 
 impl Point {
+    /// The controller's settings for an episode of `seconds` at this point, without kicks.
+    pub fn control(&self, seconds: f64) -> ControlConfig {
+        ControlConfig {
+            gradient: self.gradient,
+            adaptive: self.adaptive,
+            guidance_steps: self.guidance_steps,
+            execute: self.execute,
+            inverse_dynamics: self.inverse_dynamics,
+            acceleration: self.acceleration,
+            start_actions: self.start_actions,
+            seed: self.seed,
+            ..ControlConfig::new(self.nfe, self.scale, seconds)
+        }
+    }
+
     /// How guidance acts, for a report: adaptive guidance, inverse dynamics and the start
     /// actions always, and the other settings where they differ from the controller's defaults.
     pub fn describe(&self) -> String {
@@ -69,10 +84,10 @@ impl Point {
         let mut said = vec![
             format!("adaptive {adaptive}"),
             format!("inverse dynamics {}", self.inverse_dynamics),
-            format!("start actions {}", serde_name(&self.start_actions)),
+            format!("start actions {}", setting_name(&self.start_actions)),
         ];
         if self.gradient != Gradient::default() {
-            said.push(format!("gradient {}", serde_name(&self.gradient)));
+            said.push(format!("gradient {}", setting_name(&self.gradient)));
         }
         if let Some((a, b)) = self.guidance_steps {
             said.push(format!("guidance on solver steps {a} to {}", b.saturating_sub(1)));
@@ -88,7 +103,7 @@ impl Point {
 }
 
 /// A unit enum's name as settings files and flags spell it (`inverse-dynamics`).
-fn serde_name(value: &impl Serialize) -> String {
+pub fn setting_name(value: &impl Serialize) -> String {
     serde_json::to_string(value).expect("json").trim_matches('"').to_string()
 }
 
@@ -103,20 +118,9 @@ impl Bench<'_> {
         on_step: impl FnMut(&StepReport),
     ) -> Result<Rollout, ControlError> {
         let config = ControlConfig {
-            nfe: point.nfe,
-            guidance_scale: point.scale,
-            gradient: point.gradient,
-            adaptive: point.adaptive,
-            guidance_steps: point.guidance_steps,
-            seconds,
-            execute: point.execute,
-            inverse_dynamics: point.inverse_dynamics,
-            acceleration: point.acceleration,
-            start_actions: point.start_actions,
-            paced: false,
-            seed: point.seed,
             kick_every: if kicks { 1.0 } else { 0.0 },
             kick_max: if kicks { 0.5 } else { 0.0 },
+            ..point.control(seconds)
         };
         let r = controller::run(self.model, self.humanoid, self.clip, tasks, &config, self.name, on_step)?;
         if let Some(dir) = self.rollouts {

@@ -4,7 +4,7 @@
 //! produces the rows; [`sweep`] decides which points still need them.
 
 use crate::mean_std;
-use crate::protocols::{Bench, Point};
+use crate::protocols::{Bench, Point, setting_name};
 use flowmimic_control::StartActions;
 use flowmimic_model::TrajectoryModel;
 use flowmimic_motion::Clip;
@@ -115,7 +115,7 @@ impl Store {
     fn key(m: &EvalModel, settings: &str, point: Point) -> String {
         let h = m.model.layout().spec.horizon;
         let (nfe, w, k, seed) = (point.nfe, point.scale, point.execute, point.seed);
-        let g = serde_json::to_string(&point.gradient).expect("json");
+        let g = setting_name(&point.gradient);
         // A non-default guidance interval is a different point; the default keeps older keys.
         let mut steps = point.guidance_steps.map(|(a, b)| format!("\0guided steps {a}..{b}")).unwrap_or_default();
         if let Some(a) = point.adaptive {
@@ -137,7 +137,7 @@ impl Store {
         }
         let inputs = format!("{:x}", Sha256::digest(format!("{}\0{settings}{steps}", m.content)));
         let model = format!("{}@{}", m.label, &inputs[..12]);
-        format!("{model},{},{h},{nfe},{w},{},{k},{seed}", m.model.objective.name(), g.trim_matches('"'))
+        format!("{model},{},{h},{nfe},{w},{g},{k},{seed}", m.model.objective.name())
     }
 
     /// The point's rows: stored ones when complete, else computed by `run` and stored.
