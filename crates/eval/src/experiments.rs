@@ -43,8 +43,18 @@ pub struct Study<'a> {
 
 /// The mean time to arrive of the trials that arrived (s), or a dash when none did.
 fn time_to_arrive(s: &Summary) -> String {
-    let seconds = s.mean["seconds"];
-    if seconds.is_nan() { "—".to_string() } else { format!("{seconds:.1}") }
+    cell(s.mean["seconds"], 1)
+}
+
+/// A mean with `digits` decimals, or a dash where no trial had one (every trial fell before it).
+fn cell(value: f64, digits: usize) -> String {
+    if value.is_nan() { "—".to_string() } else { format!("{value:.digits$}") }
+}
+
+/// Means with their signs and 2 decimals, each a dash where no trial had one, comma-separated.
+fn signed(values: &[f64]) -> String {
+    let one = |v: &f64| if v.is_nan() { "—".to_string() } else { format!("{v:+.2}") };
+    values.iter().map(one).collect::<Vec<_>>().join(", ")
 }
 
 /// The most segments `eval joystick --schedule` reports, and each segment's columns: the mean
@@ -241,22 +251,18 @@ impl Study<'_> {
             |m, s, unguided| {
                 let share = unguided
                     .map_or_else(|| "-".into(), |u| format!("{:.3}", s.mean["velocity_rmse"] / u.mean["velocity_rmse"]));
+                let cells = |keys: &[&str], digits| keys.iter().map(|k| cell(s.mean[*k], digits)).collect::<Vec<_>>();
                 format!(
-                    "| {} | {} | {} | {:.3} ± {:.3} | {share} | {:.2} / {:.2} / {:.2} / {:.2} | {:.3} | {:.2} / {:.2} | {:.2} / {:.2} | {:.0} / {:.0} / {:.0} / {:.0}% | {:.0}% |",
+                    "| {} | {} | {} | {:.3} ± {:.3} | {share} | {} | {:.3} | {} | {} | {:.0} / {:.0} / {:.0} / {:.0}% | {:.0}% |",
                     m.label,
                     s.horizon,
                     s.point.scale,
                     s.mean["velocity_rmse"],
                     s.std["velocity_rmse"],
-                    s.mean["forward_rmse"],
-                    s.mean["backward_rmse"],
-                    s.mean["left_rmse"],
-                    s.mean["right_rmse"],
+                    cells(&["forward_rmse", "backward_rmse", "left_rmse", "right_rmse"], 2).join(" / "),
                     s.mean["yaw_rate_rmse"],
-                    s.mean["forward_vx"],
-                    s.mean["backward_vx"],
-                    s.mean["left_yaw_rate"],
-                    s.mean["right_yaw_rate"],
+                    cells(&["forward_vx", "backward_vx"], 2).join(" / "),
+                    cells(&["left_yaw_rate", "right_yaw_rate"], 2).join(" / "),
                     100.0 * s.mean["forward_followed"],
                     100.0 * s.mean["backward_followed"],
                     100.0 * s.mean["left_followed"],
@@ -322,21 +328,15 @@ impl Study<'_> {
                     .enumerate()
                     .map(|(i, (seg, [vx, vy, yaw, ok, pvx, pvy, pyaw]))| {
                         format!(
-                            "| {} | {} | {} | {:.3} | {} | {:+.2}, {:+.2}, {:+.2} | {:+.2}, {:+.2}, {:+.2} | {:+.2}, {:+.2}, {:+.2} | {:.0}% | {:.0}% |",
+                            "| {} | {} | {} | {:.3} | {} | {} | {} | {} | {:.0}% | {:.0}% |",
                             m.label,
                             s.horizon,
                             s.point.scale,
                             s.mean["velocity_rmse"],
                             i + 1,
-                            seg.vx,
-                            seg.vy,
-                            seg.yaw_rate,
-                            s.mean[vx],
-                            s.mean[vy],
-                            s.mean[yaw],
-                            s.mean[pvx],
-                            s.mean[pvy],
-                            s.mean[pyaw],
+                            signed(&[seg.vx, seg.vy, seg.yaw_rate]),
+                            signed(&[s.mean[vx], s.mean[vy], s.mean[yaw]]),
+                            signed(&[s.mean[pvx], s.mean[pvy], s.mean[pyaw]]),
                             100.0 * s.mean[ok],
                             100.0 * s.mean["fell"]
                         )
@@ -779,4 +779,15 @@ fn dataset_features(dir: &Path) -> Result<Vec<Vec<f64>>> {
         return Err(format!("{}: only {} states, too few for a reference", dir.display(), out.len()).into());
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{cell, signed};
+
+    #[test]
+    fn a_mean_no_trial_had_is_a_dash_not_nan() {
+        assert_eq!((cell(0.4567, 2), cell(f64::NAN, 2)), ("0.46".to_string(), "—".to_string()));
+        assert_eq!(signed(&[1.0, -0.25, f64::NAN]), "+1.00, -0.25, —");
+    }
 }
