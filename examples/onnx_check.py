@@ -101,18 +101,27 @@ def rollout_conditioning(rollout, layout, t):
         parts.append(reexpress(states[k, :sd], pose(k), pose(t)))
         if j < n:
             parts.append(actions[k] if k < t else np.zeros(layout["action_dim"], dtype=np.float32))
+    # A model with task labels takes them after s_t; the check gives none (all zeros).
+    parts.append(np.zeros(layout.get("labels", 0), dtype=np.float32))
     return np.concatenate(parts)[None, :]
 
 
 def normaliser(meta):
-    """Per-entry mean and std of an interleaved window, from the graph's metadata."""
+    """Per-entry mean and std of a window, from the graph's metadata (a task label, after s_t,
+    is taken as it is)."""
     stats, layout = json.loads(meta["stats"]), json.loads(meta["layout"])
     sd, ad = layout["state_dim"], layout["action_dim"]
     slots = len(stats["state_mean"]) // sd
-    interleave = lambda s, a: np.concatenate(
-        [np.concatenate([s[k * sd:(k + 1) * sd], a[k * ad:(k + 1) * ad]]) for k in range(slots)]
+    at, labels = layout["spec"]["history"] * (sd + ad) + sd, layout.get("labels", 0)
+    interleave = lambda s, a, fill: np.insert(
+        np.concatenate([np.concatenate([s[k * sd:(k + 1) * sd], a[k * ad:(k + 1) * ad]]) for k in range(slots)]),
+        at,
+        np.full(labels, fill),
     ).astype(np.float32)
-    return (interleave(stats["state_mean"], stats["action_mean"]), interleave(stats["state_std"], stats["action_std"]))
+    return (
+        interleave(stats["state_mean"], stats["action_mean"], 0.0),
+        interleave(stats["state_std"], stats["action_std"], 1.0),
+    )
 
 
 MIN_REMAINING = 0.05  # the smallest 1 - s a clean-sample flow network's velocity divides by

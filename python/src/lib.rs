@@ -8,7 +8,7 @@ use flowmimic_control::costs::batch_guidance_grad;
 use flowmimic_control::recommended::Settings;
 use flowmimic_control::{ControlConfig, Controller as Driver, Layout, Recommended, Steer, Task};
 use flowmimic_geom::{CharFrame, DVec3};
-use flowmimic_model::{Gradient, TaskGuidance, TrajectoryModel};
+use flowmimic_model::{Gradient, TaskGuidance, TaskLabel, TrajectoryModel};
 use flowmimic_motion::{Clip as Motion, GaitParams, ImportOptions};
 use flowmimic_sim::{BODY_NAMES, Humanoid, NUM_BODIES, NUM_DOFS, Obstacle, STATE_DIM, SimConfig};
 use flowmimic_track::TrackConfig;
@@ -98,10 +98,18 @@ impl Model {
     }
 
     /// Length of one conditioning row: the history's states and actions interleaved
-    /// (docs/conventions.md, the trajectory layout).
+    /// (docs/conventions.md, the trajectory layout), then one entry per task label.
     #[getter]
     fn cond_len(&self) -> usize {
         self.inner.layout().cond_len()
+    }
+
+    /// The task labels that end a conditioning row, in order, for a model told each window's
+    /// task (a one-hot; all zeros says none); empty for a model without them.
+    #[getter]
+    fn task_labels(&self) -> Vec<String> {
+        let name = |l: &TaskLabel| serde_json::to_value(l).ok().and_then(|v| v.as_str().map(String::from));
+        TaskLabel::ALL[..self.inner.layout().labels].iter().filter_map(name).collect()
     }
 
     /// Length of one sampled future: actions and states, H steps.

@@ -26,6 +26,7 @@ def test_model_layout_and_sampling(model):
     assert (model.objective, model.horizon, model.history) == ("fm", 16, 4)
     mean, std = model.normalisation
     assert mean.shape == std.shape == (model.cond_len + model.future_len,)
+    assert model.task_labels == []  # the shipped fm is not told its task
     clip = flowmimic.generate("walk", speed=1.0, duration=4.0)
     # A conditioning from the clip: four states, three actions between them (zeros will do for
     # shapes); the same seed gives the same futures, guidance changes them.

@@ -166,5 +166,5 @@ fn rollout_conditioning(model: &TrajectoryModel, rollout: &Rollout, step: usize)
         }
     }
     let (states, actions) = history.conditioning();
-    Ok(layout.interleave(&states, &actions))
+    Ok(layout.conditioning(&states, &actions, None))
 }

@@ -49,7 +49,7 @@ pub fn train(
     let layout = humanoid_layout(&model);
     let stats = Stats::of_dataset(&dataset, layout.spec)?;
     let started = Instant::now();
-    let data = WindowSet::from_dataset(&dataset, layout, &stats, cfg.validation_fraction)?;
+    let data = WindowSet::from_dataset(&dataset, layout, &stats, cfg.validation_fraction, &cfg.reach_clips)?;
     eprintln!(
         "{}: {} training and {} validation windows (history {}, horizon {}) in {:.1} s",
         dataset.dir.display(),
@@ -59,6 +59,11 @@ pub fn train(
         layout.spec.horizon,
         started.elapsed().as_secs_f64()
     );
+    if layout.labels > 0 {
+        let ((clips, share), all) = (data.reach(), dataset.manifest.shards.len());
+        let share = 100.0 * share;
+        eprintln!("task labels: reach on {clips} of {all} clips ({share:.0}% of training windows), walk on the rest");
+    }
     let fresh = Trainer::new(
         TrajectoryModel::new(layout, model, objective, stats, cfg.seed),
         cfg.clone(),

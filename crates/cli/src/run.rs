@@ -501,8 +501,10 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     } else {
         format!("guidance {} on steps {:?}", control.guidance_scale, control.guidance_steps())
     };
+    let label =
+        if model.config.task_labels { format!(", task label {}", setting_name(&task.label())) } else { String::new() };
     eprintln!(
-        "{} model (H {}), NFE {}, {guidance}, task {name}, {} env(s), {} s",
+        "{} model (H {}{label}), NFE {}, {guidance}, task {name}, {} env(s), {} s",
         model.objective.label(),
         model.layout().spec.horizon,
         control.nfe,

@@ -87,6 +87,30 @@ fn stages_connect_through_their_files() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// A model told each window's task: trained on clips labelled by name, refused where no clip
+/// is a reaching one, and driven on a walking and a reaching task.
+fn task_labelled_model_trains_and_drives(dir: &Path) {
+    let labels = |clips: &str| format!("[model]\ntask_labels = true\n[train]\nreach_clips = [{clips}]\n");
+    std::fs::write(dir.join("labels.toml"), labels("\"v-mirrored\"")).unwrap();
+    std::fs::write(dir.join("no-reach.toml"), labels("\"reach_\"")).unwrap();
+    let train = |config: &str| {
+        flowmimic(dir, &["--config", config, "train", "data-v", "--objective", "fm", "-o", "labelled", "--steps", "20"])
+    };
+    let (refused, text) = train("no-reach.toml");
+    assert!(!refused && text.contains("data-v") && text.contains("train.reach_clips"), "{text}");
+    let (trained, text) = train("labels.toml");
+    assert!(
+        trained && text.contains("task labels: reach on 1 of 2 clips (50% of") && text.contains("tokens"),
+        "{text}"
+    );
+    for (task, told) in [("joystick", "task label walk"), ("reach", "task label reach")] {
+        let out = format!("labelled-{task}.rollout.safetensors");
+        let run =
+            ok(dir, &["run", "--model", "labelled", "--task", task, "--seconds", "0.3", "--envs", "2", "-o", &out]);
+        assert!(run.contains("environments fell") && run.contains(told), "{run}");
+    }
+}
+
 /// `train` and `run` on the tiny dataset that `collect` wrote.
 fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     let train = ok(dir, &["train", "data", "--objective", "fm", "-o", "fm"]);
@@ -136,6 +160,7 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     // MeanFlow's two times and state-action-state tokens export too.
     let text = ok(dir, &["export", "meanflow", "-o", "meanflow.onnx", "--check", "meanflow.check.safetensors"]);
     assert!(text.contains("meanflow denoiser, opset 17") && dir.join("meanflow.check.safetensors").exists(), "{text}");
+    task_labelled_model_trains_and_drives(dir);
     // Every objective drives the humanoid (MeanFlow in one step); the rollout holds every step.
     for (model, nfe) in [("fm", "5"), ("ddpm", "5"), ("meanflow", "1")] {
         let out = format!("{model}.rollout.safetensors");
@@ -287,7 +312,9 @@ fn exports_match_flowmimic_in_onnx_runtime(dir: &Path) {
     let has_runtime = python(&["-c".as_ref(), "import numpy, onnxruntime".as_ref()]).is_ok_and(|o| o.status.success());
     // The model's check includes the conditioning built from a rollout, as the controller does.
     let rollout = ["--rollout", "fm.rollout.safetensors", "--step", "5"];
-    for (what, source, extra) in [("model", "fm", &rollout[..]), ("expert", "run", &[])] {
+    let labelled = ["--rollout", "labelled-reach.rollout.safetensors", "--step", "5"];
+    let graphs = [("model", "fm", &rollout[..]), ("labelled", "labelled", &labelled[..]), ("expert", "run", &[])];
+    for (what, source, extra) in graphs {
         let (graph, check) = (format!("{what}.onnx"), format!("{what}.check.safetensors"));
         let text = ok(dir, &[&["export", source, "-o", &graph, "--check", &check][..], extra].concat());
         assert!(text.contains("opset 17") || text.contains("actor"), "{text}");

@@ -387,7 +387,7 @@ impl<'m> Controller<'m> {
             let mut costs: Vec<Option<crate::Sum>> = Vec::with_capacity(replan.len());
             for &e in &replan {
                 let (states, actions) = self.histories[e].conditioning();
-                cond.extend(layout.interleave(&states, &actions));
+                cond.extend(layout.conditioning(&states, &actions, Some(tasks[e].label())));
                 let b = self.envs[e].bodies();
                 let frame = CharFrame::from_root(b.pos[0], b.rot[0]);
                 let segment = tasks[e].joystick_at(time);

@@ -43,6 +43,7 @@ pub fn humanoid_layout(config: &flowmimic_model::ModelConfig) -> flowmimic_model
         state_dim: flowmimic_sim::STATE_DIM,
         action_dim: flowmimic_sim::NUM_DOFS,
         spec: config.spec(),
+        labels: config.labels(),
     }
 }
 

@@ -81,6 +81,11 @@ pub struct Task {
 pub const COMMAND_DIM: usize = 8;
 
 impl Task {
+    /// What a model with task labels is told the task does: with a hand target, reach.
+    pub fn label(&self) -> flowmimic_model::TaskLabel {
+        if self.reach.is_some() { flowmimic_model::TaskLabel::Reach } else { flowmimic_model::TaskLabel::Walk }
+    }
+
     /// How far from its waypoint the pelvis may stand to bring the hand to its target, when the
     /// task asks both (m; the composition's success radius is 0.5 m).
     pub const WAYPOINT_RADIUS: f64 = 0.4;

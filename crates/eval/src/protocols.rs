@@ -666,7 +666,7 @@ pub fn guidance_effect(
         let frame = controller::start_frame(bench.clip.len(), layout.spec.history, e);
         controller::start_from_clip(&mut env, &mut history, bench.clip, frame, bench.model, point.start_actions)?;
         let (states, actions) = history.conditioning();
-        cond.extend(layout.interleave(&states, &actions));
+        cond.extend(layout.conditioning(&states, &actions, Some(task.label())));
         let mut task = task.clone();
         if let Some((_, target)) = task.reach.as_mut() {
             let t = bench.start_to_world(e, DVec3::from_array(*target));

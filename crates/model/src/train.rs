@@ -12,7 +12,7 @@
 //! training batch's noise and target differ.
 
 use crate::inverse::{INVERSE_FILE, InverseDynamics};
-use crate::trajectory::{Normaliser, Objective, TokenLayout, TrajectoryModel};
+use crate::trajectory::{Normaliser, Objective, TaskLabel, TokenLayout, TrajectoryModel};
 use crate::{ModelConfig, TrainingBatch, ddpm, fm, meanflow, path};
 use flowmimic_data::{DataError, Dataset, Shard, Stats, window, window_starts};
 use flowmimic_io::tensors::{self, TensorError, TensorFile};
@@ -83,6 +83,12 @@ pub struct TrainConfig {
     pub checkpoint_every: usize,
     /// Seed of the initial weights, the batches and the noise.
     pub seed: u64,
+    /// For a model with task labels: the clips (by name, or a name's beginning: `reach_`)
+    /// whose windows are labelled `reach`; every other clip's are `walk`.
+    pub reach_clips: Vec<String>,
+    /// For a model with task labels: the share of training windows whose label is left out
+    /// (all zeros), so that the model also samples without one.
+    pub label_dropout: f32,
 }
 
 /// The learning rate after warm-up.
@@ -135,6 +141,8 @@ impl Default for TrainConfig {
             log_every: 50,
             checkpoint_every: 500,
             seed: 0,
+            reach_clips: Vec::new(),
+            label_dropout: 0.1,
         }
     }
 }
@@ -156,6 +164,9 @@ impl TrainConfig {
                 "train.decay_from ({}) must be below train.steps ({}): the rate would never decay",
                 self.decay_from, self.steps
             ));
+        }
+        if !(0.0..1.0).contains(&self.label_dropout) {
+            return Err(format!("train.label_dropout is {}; it must be in [0, 1)", self.label_dropout));
         }
         if !(0.0..1.0).contains(&self.validation_fraction) {
             return Err(format!("train.validation_fraction is {}; it must be in [0, 1)", self.validation_fraction));
@@ -188,23 +199,36 @@ pub struct WindowSet {
     pub layout: TokenLayout,
     norm: Normaliser,
     shards: Vec<Shard>,
+    /// Each shard's task label.
+    labels: Vec<TaskLabel>,
     /// (shard, current step) of every window, by side of the split.
     train: Vec<(usize, usize)>,
     validation: Vec<(usize, usize)>,
 }
 
 impl WindowSet {
-    /// Splits the dataset's windows into training and validation. Windows are cut from the
-    /// shards when a batch asks for them, not stored: at H = 16 three hours of rollouts would
-    /// take 6.5 GB as windows, 0.4 GB as shards.
+    /// Splits the dataset's windows into training and validation, labelled `reach` where their
+    /// clip's name begins with one of `reach_clips` and `walk` elsewhere. Windows are cut from
+    /// the shards when a batch asks for them, not stored: at H = 16 three hours of rollouts
+    /// would take 6.5 GB as windows, 0.4 GB as shards.
     pub fn from_dataset(
         dataset: &Dataset,
         layout: TokenLayout,
         stats: &Stats,
         validation_fraction: f64,
+        reach_clips: &[String],
     ) -> Result<Self, ModelError> {
         let (mut train, mut validation) = (Vec::new(), Vec::new());
-        let shards: Vec<Shard> = dataset.load_all()?.into_iter().map(|(_, shard)| shard).collect();
+        let (infos, shards): (Vec<_>, Vec<Shard>) = dataset.load_all()?.into_iter().unzip();
+        let is_reach = |clip: &str| reach_clips.iter().any(|r| clip.starts_with(r.as_str()));
+        let labels: Vec<TaskLabel> =
+            infos.iter().map(|i| if is_reach(&i.clip) { TaskLabel::Reach } else { TaskLabel::Walk }).collect();
+        if layout.labels > 0 && !labels.contains(&TaskLabel::Reach) {
+            return Err(ModelError::Invalid(format!(
+                "{}: a model with task labels needs reaching clips, and no clip begins with one of train.reach_clips {reach_clips:?}",
+                dataset.dir.display()
+            )));
+        }
         for (s, shard) in shards.iter().enumerate() {
             for t in window_starts(shard, layout.spec) {
                 // A rollout goes wholly to one side, so overlapping windows never straddle it.
@@ -220,7 +244,7 @@ impl WindowSet {
                 layout.spec.horizon
             )));
         }
-        Ok(Self { norm: Normaliser::new(&layout, stats), layout, shards, train, validation })
+        Ok(Self { norm: Normaliser::new(&layout, stats), layout, shards, labels, train, validation })
     }
 
     pub fn train_len(&self) -> usize {
@@ -231,6 +255,13 @@ impl WindowSet {
         self.validation.len()
     }
 
+    /// How many shards are labelled `reach`, and their share of the training windows.
+    pub fn reach(&self) -> (usize, f64) {
+        let is_reach = |&(s, _): &(usize, usize)| self.labels[s] == TaskLabel::Reach;
+        let windows = self.train.iter().filter(|w| is_reach(w)).count();
+        (self.labels.iter().filter(|&&l| l == TaskLabel::Reach).count(), windows as f64 / self.train.len() as f64)
+    }
+
     /// The normalised, interleaved windows `rows` of a side, one after another.
     fn windows(&self, side: &[(usize, usize)], rows: &[usize]) -> Vec<f32> {
         let w = self.layout.window_len();
@@ -238,7 +269,7 @@ impl WindowSet {
         for &r in rows {
             let (s, t) = side[r];
             let win = window(&self.shards[s], self.layout.spec, t);
-            let mut row = self.layout.interleave(&win.states, &win.actions);
+            let mut row = self.layout.window(&win.states, &win.actions, Some(self.labels[s]));
             self.norm.normalise(&mut row, 0, w);
             out.extend(row);
         }
@@ -291,7 +322,7 @@ impl ModelMeta {
         }
         let meta: ModelMeta = serde_json::from_value(json).map_err(bad)?;
         meta.config.validate().and_then(|()| meta.objective.validate()).map_err(|e| file.error(e))?;
-        let expected = TokenLayout { spec: meta.config.spec(), ..meta.layout };
+        let expected = TokenLayout { spec: meta.config.spec(), labels: meta.config.labels(), ..meta.layout };
         let sizes = (1..=4096).contains(&meta.layout.state_dim) && (1..=4096).contains(&meta.layout.action_dim);
         if meta.layout != expected || !sizes {
             let message = format!("the token layout {:?} does not fit the model's window", meta.layout);
@@ -384,7 +415,15 @@ impl Trainer {
     /// when asked.
     fn loss(&self, side: &[(usize, usize)], rows: &[usize], rng: &mut StdRng, grads: bool) -> (f32, Option<Vec<f32>>) {
         let net = &self.model.net;
-        let (cond, clean) = self.split(&self.data.windows(side, rows));
+        let (mut cond, clean) = self.split(&self.data.windows(side, rows));
+        let layout = self.model.layout();
+        if grads && layout.labels > 0 {
+            for row in cond.chunks_exact_mut(layout.cond_len()) {
+                if rng.random::<f32>() < self.config.label_dropout {
+                    row[layout.cond_len() - layout.labels..].fill(0.0);
+                }
+            }
+        }
         let batch = self.training_batch(&clean, &cond, rng);
         let n = rows.len();
         let tape = net.forward(&batch.x, &batch.t, &cond, n);

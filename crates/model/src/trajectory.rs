@@ -25,6 +25,23 @@ pub struct TokenLayout {
     pub state_dim: usize,
     pub action_dim: usize,
     pub spec: WindowSpec,
+    /// Entries of the task label at the end of the conditioning: one per [`TaskLabel`] of a
+    /// model told what its window does (`ModelConfig::task_labels`), else none.
+    #[serde(default)]
+    pub labels: usize,
+}
+
+/// What a window's motion does, as a model with task labels is told (a one-hot; all zeros:
+/// not said).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TaskLabel {
+    Walk,
+    Reach,
+}
+
+impl TaskLabel {
+    pub const ALL: [TaskLabel; 2] = [TaskLabel::Walk, TaskLabel::Reach];
 }
 
 impl TokenLayout {
@@ -36,14 +53,43 @@ impl TokenLayout {
         self.spec.history + 1 + self.spec.horizon
     }
 
-    /// Length of a whole interleaved window.
+    /// Length of a whole window: the interleaved steps and the task label.
     pub fn window_len(&self) -> usize {
-        self.tokens() * self.token_dim()
+        self.tokens() * self.token_dim() + self.labels
     }
 
-    /// Length of the conditioning `O_t`: N (state, action) pairs and `s_t`.
+    /// Length of the conditioning `O_t`: N (state, action) pairs, `s_t` and the task label.
     pub fn cond_len(&self) -> usize {
+        self.label_at() + self.labels
+    }
+
+    /// Where the task label starts: after `s_t`.
+    fn label_at(&self) -> usize {
         self.spec.history * self.token_dim() + self.state_dim
+    }
+
+    /// The label entries for `label` (zeros for none, or for a model without labels: empty).
+    pub fn label(&self, label: Option<TaskLabel>) -> Vec<f32> {
+        let mut out = vec![0.0; self.labels];
+        if let Some(k) = label.and_then(|l| TaskLabel::ALL.iter().position(|&a| a == l)).filter(|&k| k < self.labels) {
+            out[k] = 1.0;
+        }
+        out
+    }
+
+    /// The conditioning `O_t` of the history's `states` (N + 1) and `actions` (N) for `label`.
+    pub fn conditioning(&self, states: &[f32], actions: &[f32], label: Option<TaskLabel>) -> Vec<f32> {
+        let mut out = self.interleave(states, actions);
+        out.extend(self.label(label));
+        out
+    }
+
+    /// A whole window of `states` and `actions` (N + 1 + H each) for `label`.
+    pub fn window(&self, states: &[f32], actions: &[f32], label: Option<TaskLabel>) -> Vec<f32> {
+        let mut out = self.interleave(states, actions);
+        let at = self.label_at();
+        out.splice(at..at, self.label(label));
+        out
     }
 
     /// Length of the future `tau_t`.
@@ -52,7 +98,7 @@ impl TokenLayout {
     }
 
     /// Interleaves `states` (k x state) and `actions` (k or k - 1 x action) as
-    /// `[s_0, a_0, s_1, a_1, ...]`.
+    /// `[s_0, a_0, s_1, a_1, ...]` (no task label).
     pub fn interleave(&self, states: &[f32], actions: &[f32]) -> Vec<f32> {
         let (sd, ad) = (self.state_dim, self.action_dim);
         let mut out = Vec::with_capacity(states.len() + actions.len());
@@ -84,6 +130,9 @@ pub struct ModelConfig {
     pub time_features: usize,
     /// Which state an action shares its token with.
     pub pairing: Pairing,
+    /// Whether the network is told what each window does ([`TaskLabel`], in one more token):
+    /// trained with the label of its clip (`[train] reach_clips`), sampled with the task's.
+    pub task_labels: bool,
 }
 
 /// How a window's states and actions are cut into tokens.
@@ -113,13 +162,26 @@ impl Pairing {
         }
     }
 
-    /// Tokens per sample.
+    /// Tokens per sample: the steps', and the task label's when there is one.
     fn tokens(self, layout: &TokenLayout) -> usize {
-        layout.tokens() + usize::from(self == Pairing::ActionState)
+        layout.tokens() + usize::from(self == Pairing::ActionState) + usize::from(layout.labels > 0)
     }
 
-    /// For each entry of a sample's tokens, the window entry it holds (`None`: zero padding).
+    /// For each entry of a sample's tokens, the window entry it holds (`None`: zero padding):
+    /// the steps' tokens, then a last token with the task label.
     fn gather(self, layout: &TokenLayout) -> Vec<Option<usize>> {
+        let (at, labels) = (layout.label_at(), layout.labels);
+        let steps = self.gather_steps(&TokenLayout { labels: 0, ..*layout });
+        if labels == 0 {
+            return steps;
+        }
+        let width = self.token_dim(layout);
+        let label = (at..at + labels).map(Some).chain(std::iter::repeat_n(None, width - labels));
+        steps.into_iter().map(|j| j.map(|j| if j >= at { j + labels } else { j })).chain(label).collect()
+    }
+
+    /// [`Pairing::gather`] of a layout without a task label.
+    fn gather_steps(self, layout: &TokenLayout) -> Vec<Option<usize>> {
         let (w, sd, td) = (layout.window_len(), layout.state_dim, layout.token_dim());
         match self {
             Pairing::StateAction => (0..w).map(Some).collect(),
@@ -149,6 +211,7 @@ impl Default for ModelConfig {
             d_ff: 512,
             time_features: 64,
             pairing: Pairing::default(),
+            task_labels: false,
         }
     }
 }
@@ -177,6 +240,11 @@ impl ModelConfig {
 
     pub fn spec(&self) -> WindowSpec {
         WindowSpec { history: self.history, horizon: self.horizon }
+    }
+
+    /// Task label entries of this model's windows.
+    pub fn labels(&self) -> usize {
+        if self.task_labels { TaskLabel::ALL.len() } else { 0 }
     }
 
     pub fn transformer(&self, layout: &TokenLayout) -> TransformerConfig {
@@ -297,10 +365,16 @@ pub struct Normaliser {
 }
 
 impl Normaliser {
+    /// The dataset's moments, and mean 0, deviation 1 for the task label (taken as it is).
     pub fn new(layout: &TokenLayout, stats: &Stats) -> Self {
+        let (at, labels) = (layout.label_at(), layout.labels);
+        let with_label = |mut v: Vec<f32>, fill: f32| {
+            v.splice(at..at, std::iter::repeat_n(fill, labels));
+            v
+        };
         Self {
-            mean: layout.interleave(&stats.state_mean, &stats.action_mean),
-            std: layout.interleave(&stats.state_std, &stats.action_std),
+            mean: with_label(layout.interleave(&stats.state_mean, &stats.action_mean), 0.0),
+            std: with_label(layout.interleave(&stats.state_std, &stats.action_std), 1.0),
         }
     }
 
@@ -486,7 +560,7 @@ impl TrajectoryModel {
     }
 
     /// Samples futures (n x future, physical units) given conditionings (n x cond, physical
-    /// units, as [`TokenLayout::interleave`] of the history's states and actions) with `nfe`
+    /// units, as [`TokenLayout::conditioning`] of the history's states and actions) with `nfe`
     /// network evaluations; with guidance, its gradient is taken as `guidance.gradient` says.
     pub fn sample(
         &self,
@@ -563,7 +637,10 @@ mod tests {
 
     /// A small network with random weights everywhere, so every path of the pullback counts.
     fn small_net(pairing: Pairing) -> TrajectoryNet {
-        let layout = TokenLayout { state_dim: 3, action_dim: 2, spec: WindowSpec { history: 1, horizon: 2 } };
+        small_net_labelled(pairing, false)
+    }
+
+    fn small_net_labelled(pairing: Pairing, task_labels: bool) -> TrajectoryNet {
         let config = ModelConfig {
             history: 1,
             horizon: 2,
@@ -573,7 +650,10 @@ mod tests {
             d_ff: 12,
             time_features: 4,
             pairing,
+            task_labels,
         };
+        let spec = WindowSpec { history: 1, horizon: 2 };
+        let layout = TokenLayout { state_dim: 3, action_dim: 2, spec, labels: config.labels() };
         let mut rng = StdRng::seed_from_u64(4);
         let mut net = Transformer::new(config.transformer(&layout), &mut rng);
         net.params.iter_mut().for_each(|p| *p += 0.4 * rng.random::<f32>() - 0.2);
@@ -603,6 +683,30 @@ mod tests {
                     assert_eq!(first, &cond[..c].iter().chain(&x[..f]).copied().collect::<Vec<_>>())
                 }
             }
+        }
+    }
+
+    #[test]
+    fn a_task_label_sits_after_s_t_and_enters_its_own_last_token() {
+        for pairing in [Pairing::StateAction, Pairing::ActionState, Pairing::StateActionState] {
+            let (plain, labelled) = (small_net(pairing), small_net_labelled(pairing, true));
+            let (c, f) = (labelled.layout.cond_len(), labelled.layout.future_len());
+            assert_eq!((c, f), (plain.layout.cond_len() + 2, plain.layout.future_len()), "{pairing:?}");
+            let states: Vec<f32> = (0..12).map(|i| i as f32).collect();
+            let actions: Vec<f32> = (0..8).map(|i| 100.0 + i as f32).collect();
+            let window = labelled.layout.window(&states, &actions, Some(TaskLabel::Reach));
+            let cond = labelled.layout.conditioning(&states[..6], &actions[..2], Some(TaskLabel::Reach));
+            assert_eq!(window[..c], cond[..], "{pairing:?}");
+            assert_eq!(cond[c - 2..], [0.0, 1.0], "{pairing:?}");
+            assert_eq!(labelled.layout.label(None), [0.0, 0.0]);
+            // The steps' tokens are the unlabelled network's; the label token is [walk, reach, 0...].
+            let plain_cond = plain.layout.interleave(&states[..6], &actions[..2]);
+            let (x, width) = (&window[c..], labelled.net.config.token_dim);
+            let tokens = labelled.tokens(x, &cond, 1);
+            assert_eq!(tokens[..tokens.len() - width], plain.tokens(x, &plain_cond, 1)[..], "{pairing:?}");
+            let last = &tokens[tokens.len() - width..];
+            assert!(last[..2] == [0.0, 1.0] && last[2..].iter().all(|&v| v == 0.0), "{pairing:?}");
+            assert_eq!(labelled.future(&tokens), x, "{pairing:?}");
         }
     }
 

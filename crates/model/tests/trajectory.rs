@@ -7,7 +7,7 @@ use rand::SeedableRng;
 use rand::rngs::StdRng;
 
 fn layout() -> TokenLayout {
-    TokenLayout { state_dim: 3, action_dim: 2, spec: WindowSpec { history: 1, horizon: 2 } }
+    TokenLayout { state_dim: 3, action_dim: 2, spec: WindowSpec { history: 1, horizon: 2 }, labels: 0 }
 }
 
 #[test]
@@ -81,7 +81,7 @@ fn the_learning_rate_warms_up_then_holds_or_follows_a_cosine_to_zero() {
     assert!((constant.lr_at(49) - 5e-4).abs() < 1e-9, "half-way through warm-up");
     assert_eq!(constant.lr_at(99), 1e-3);
     assert_eq!(constant.lr_at(999), 1e-3);
-    let cosine = TrainConfig { lr_schedule: LrSchedule::Cosine, ..constant };
+    let cosine = TrainConfig { lr_schedule: LrSchedule::Cosine, ..constant.clone() };
     assert_eq!(cosine.lr_at(49), constant.lr_at(49), "the same warm-up");
     assert!((cosine.lr_at(100) - 1e-3).abs() < 1e-9, "full at the end of warm-up");
     assert!((cosine.lr_at(550) - 5e-4).abs() < 1e-7, "half between warm-up and the last step");
@@ -90,7 +90,7 @@ fn the_learning_rate_warms_up_then_holds_or_follows_a_cosine_to_zero() {
     assert!(lrs.windows(2).all(|w| w[1] <= w[0]), "it only falls after warm-up");
     // Held until `decay_from`, then the whole run's cosine: a constant run resumed there with
     // `cosine` (configs/decay.toml's recipe).
-    let held = TrainConfig { decay_from: 600, ..cosine };
+    let held = TrainConfig { decay_from: 600, ..cosine.clone() };
     assert!(held.validate().is_ok());
     for s in [0, 99, 100, 599] {
         assert_eq!(held.lr_at(s), constant.lr_at(s), "held at step {s}");
