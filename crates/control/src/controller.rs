@@ -481,7 +481,7 @@ impl<'m> Controller<'m> {
 }
 
 /// Moves each plan's first action the share `beta` of the way to what the model's inverse
-/// dynamics reads out of the current state (the last of each conditioning) and the plan's next
+/// dynamics reads out of the current state (the last of each conditioning's) and the plan's next
 /// state. The model's actions are clean expert actions, nearly independent of the states that
 /// follow them in the data, so a guided next state barely moves them (README, "Inverse
 /// dynamics").
@@ -491,7 +491,7 @@ fn blend_inverse_dynamics(model: &TrajectoryModel, beta: f32, cond: &[f32], futu
     let traj = Layout { horizon: layout.spec.horizon };
     let mut pairs = Vec::with_capacity(2 * sd * futures.len() / traj.len());
     for (c, future) in cond.chunks_exact(layout.cond_len()).zip(futures.chunks_exact(traj.len())) {
-        pairs.extend_from_slice(&c[c.len() - sd..]);
+        pairs.extend_from_slice(layout.current_state(c));
         pairs.extend_from_slice(&future[traj.state(1)..][..sd]);
     }
     let actions = inverse.actions(&pairs, futures.len() / traj.len());

@@ -63,6 +63,11 @@ impl TokenLayout {
         self.label_at() + self.labels
     }
 
+    /// The current state `s_t` of a conditioning row (before its task label).
+    pub fn current_state<'a>(&self, cond: &'a [f32]) -> &'a [f32] {
+        &cond[self.label_at() - self.state_dim..self.label_at()]
+    }
+
     /// Where the task label starts: after `s_t`.
     fn label_at(&self) -> usize {
         self.spec.history * self.token_dim() + self.state_dim
@@ -698,6 +703,7 @@ mod tests {
             let cond = labelled.layout.conditioning(&states[..6], &actions[..2], Some(TaskLabel::Reach));
             assert_eq!(window[..c], cond[..], "{pairing:?}");
             assert_eq!(cond[c - 2..], [0.0, 1.0], "{pairing:?}");
+            assert_eq!(labelled.layout.current_state(&cond), &states[3..6], "{pairing:?}");
             assert_eq!(labelled.layout.label(None), [0.0, 0.0]);
             // The steps' tokens are the unlabelled network's; the label token is [walk, reach, 0...].
             let plain_cond = plain.layout.interleave(&states[..6], &actions[..2]);
