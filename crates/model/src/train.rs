@@ -420,7 +420,7 @@ impl Trainer {
         if grads && layout.labels > 0 {
             for row in cond.chunks_exact_mut(layout.cond_len()) {
                 if rng.random::<f32>() < self.config.label_dropout {
-                    row[layout.cond_len() - layout.labels..].fill(0.0);
+                    row[layout.label_range()].fill(0.0);
                 }
             }
         }

@@ -73,6 +73,11 @@ impl TokenLayout {
         self.spec.history * self.token_dim() + self.state_dim
     }
 
+    /// The task label's entries in a conditioning row or a window.
+    pub fn label_range(&self) -> std::ops::Range<usize> {
+        self.label_at()..self.label_at() + self.labels
+    }
+
     /// The label entries for `label` (zeros for none, or for a model without labels: empty).
     pub fn label(&self, label: Option<TaskLabel>) -> Vec<f32> {
         let mut out = vec![0.0; self.labels];
