@@ -4,7 +4,9 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use flowmimic_motion::{
     Clip, CorpusParams, Coverage, GaitParams, ImportOptions, Segment, Units, UpAxis, WanderParams,
-    clip::BODY_SPEED_JUMP, coverage, generator, reach::Reaching,
+    clip::BODY_SPEED_JUMP,
+    coverage, generator,
+    reach::{Reaching, TargetHeights},
 };
 use flowmimic_plot::{Chart, Series, histogram};
 use flowmimic_sim::Humanoid;
@@ -65,6 +67,11 @@ pub enum MotionCommand {
         /// when given without a value.
         #[arg(long, num_args = 0..=1, default_missing_value = "0.5", value_name = "SHARE")]
         reach: Option<f64>,
+        /// With --reach: how the targets' heights are drawn, split (a third 0.4-0.9 m, the rest
+        /// 1.1-1.7 m, as the corpus's reaching clips) or uniform (0.4-1.7 m, in front of the
+        /// waist and chest too).
+        #[arg(long, requires = "reach", value_parser = parse_heights, default_value = "split")]
+        reach_heights: TargetHeights,
         /// One walk that follows a command schedule instead of the gait flags, `run`'s syntax:
         /// `seconds:vx,vy,yaw_rate` segments joined by `;` (forward, left m/s; rad/s), each
         /// blended into the next over 1 s, e.g. "2:1,0,0;3:-0.5,0,0;3:0.9,0,0".
@@ -287,8 +294,19 @@ pub fn run(cmd: MotionCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
                 bail!("{} of {} files could not be imported: {}", failed.len(), files.len(), failed.join(", "));
             }
         }
-        MotionCommand::Generate { gait, count, wander, transitions, reach, schedule, seed, name, out } => {
-            let reaching = |seed| reach.map(|share| Reaching { share, seed });
+        MotionCommand::Generate {
+            gait,
+            count,
+            wander,
+            transitions,
+            reach,
+            reach_heights,
+            schedule,
+            seed,
+            name,
+            out,
+        } => {
+            let reaching = |seed| reach.map(|share| Reaching { share, seed, heights: reach_heights });
             header();
             let mut clips = Vec::new();
             if let Some(text) = schedule {
@@ -420,4 +438,8 @@ pub(crate) fn print_coverage(cov: &Coverage, dir: &Path) -> Result<()> {
     }
     println!("wrote coverage_forward, coverage_sideways and coverage_yaw_rate (.png, .svg) in {}", dir.display());
     Ok(())
+}
+
+fn parse_heights(text: &str) -> Result<TargetHeights, String> {
+    crate::run::parse_named(text, "split or uniform")
 }

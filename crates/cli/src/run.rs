@@ -239,7 +239,7 @@ pub fn recommended(dir: &Path, task: &str) -> Result<Settings> {
 }
 
 /// A setting by the name `recommended.toml` uses (`pd-targets`), else an error listing `choices`.
-fn parse_named<T: serde::de::DeserializeOwned>(text: &str, choices: &str) -> Result<T, String> {
+pub(crate) fn parse_named<T: serde::de::DeserializeOwned>(text: &str, choices: &str) -> Result<T, String> {
     serde_json::from_str(&format!("\"{text}\"")).map_err(|_| format!("'{text}': use {choices}"))
 }
 
@@ -600,6 +600,12 @@ pub(crate) fn print_outcome(o: &Outcome) {
             min.len(),
             list(&min, "m")
         );
+        // Where the plans put the hand beside where it went: a plan that reaches a target the
+        // hand misses is the execution's miss, a plan that misses it the model's.
+        let planned: Vec<f64> = o.reach.iter().map(|t| t.planned_min).collect();
+        if planned.iter().any(|p| p.is_finite()) {
+            println!("  planned (the hand at each plan's horizon's end): closest {}", list(&planned, "m"));
+        }
     }
     if !o.waypoint.is_empty() {
         let arrived = o.waypoint.iter().filter(|t| t.arrival.is_some()).count();

@@ -195,6 +195,15 @@ pub fn start_frame(clip_len: usize, history: usize, e: usize) -> usize {
     history + (e * 7) % (clip_len - history - 1)
 }
 
+/// A sampled trajectory being executed: its values (physical units), how many of its actions
+/// ran, and the character frame it was planned in.
+#[derive(Clone)]
+struct Plan {
+    tau: Vec<f32>,
+    used: usize,
+    frame: CharFrame,
+}
+
 /// The receding-horizon loop over a batch of environments, one control step at a time:
 /// [`run`] drives it through an episode and records it, `flowmimic play` drives it live.
 pub struct Controller<'m> {
@@ -208,8 +217,8 @@ pub struct Controller<'m> {
     holds: Vec<HeadingHold>,
     /// Each environment's joystick velocity as last asked, when speed-ups are ramped.
     ramps: Vec<SpeedRamp>,
-    /// Each environment's current plan (physical units) and how many of its actions ran.
-    plans: Vec<Option<(Vec<f32>, usize)>>,
+    /// Each environment's current plan.
+    plans: Vec<Option<Plan>>,
     alive: Vec<bool>,
     rng: StdRng,
     step: usize,
@@ -349,7 +358,7 @@ impl<'m> Controller<'m> {
 
     /// Environment `e`'s current plan (the trajectory being executed, physical units).
     pub fn plan(&self, e: usize) -> Option<&[f32]> {
-        self.plans[e].as_ref().map(|p| p.0.as_slice())
+        self.plans[e].as_ref().map(|p| p.tau.as_slice())
     }
 
     /// Puts environment `e` in a world with `obstacles` (world frame; they replace any it had),
@@ -363,6 +372,19 @@ impl<'m> Controller<'m> {
     pub fn intent(&self, e: usize) -> Option<[f32; 3]> {
         let traj = Layout { horizon: self.model.layout().spec.horizon };
         self.plan(e).map(|tau| traj.intent(tau))
+    }
+
+    /// Where environment `e`'s current plan puts body `b` at its horizon's end (world frame):
+    /// set beside where the body went, it tells a plan that misses a hand target from an
+    /// execution that misses a plan that reaches it.
+    pub fn planned_body(&self, e: usize, b: usize) -> Option<DVec3> {
+        let traj = Layout { horizon: self.model.layout().spec.horizon };
+        self.plans[e].as_ref().map(|p| {
+            // The plan's heights are above the ground, not above the frame's origin.
+            let ([x, y, z], _) = traj.body_in_frame(&p.tau, traj.horizon, b);
+            let w = p.frame.point_to_world(DVec3::new(f64::from(x), f64::from(y), 0.0));
+            DVec3::new(w.x, w.y, f64::from(z))
+        })
     }
 
     /// A planar root-velocity push on environment `e` now (m/s, world frame).
@@ -381,10 +403,11 @@ impl<'m> Controller<'m> {
         let alive: Vec<usize> = (0..self.envs.len()).filter(|&e| self.alive[e]).collect();
         let t_model = Instant::now();
         let replan: Vec<usize> =
-            alive.iter().copied().filter(|&e| self.plans[e].as_ref().is_none_or(|p| p.1 >= every)).collect();
+            alive.iter().copied().filter(|&e| self.plans[e].as_ref().is_none_or(|p| p.used >= every)).collect();
         if !replan.is_empty() {
             let mut cond = Vec::with_capacity(replan.len() * layout.cond_len());
             let mut costs: Vec<Option<crate::Sum>> = Vec::with_capacity(replan.len());
+            let mut frames = Vec::with_capacity(replan.len());
             for &e in &replan {
                 let (states, actions) = self.histories[e].conditioning();
                 cond.extend(layout.conditioning(&states, &actions, Some(tasks[e].label())));
@@ -402,6 +425,7 @@ impl<'m> Controller<'m> {
                 let factor =
                     self.config.adaptive.map_or(1.0, |a| a.factor(tasks[e].executed_error(time, &self.recent[e])));
                 costs.push(cost.map(|c| c.scaled(factor)));
+                frames.push(frame);
             }
             let future_std = &model.norm.std[layout.cond_len()..];
             let grad = |x: &[f32], n: usize| crate::costs::batch_guidance_grad(&costs, future_std, x, n);
@@ -419,7 +443,7 @@ impl<'m> Controller<'m> {
                 blend_inverse_dynamics(model, self.config.inverse_dynamics, &cond, &mut futures);
             }
             for (i, &e) in replan.iter().enumerate() {
-                self.plans[e] = Some((futures[i * len..(i + 1) * len].to_vec(), 0));
+                self.plans[e] = Some(Plan { tau: futures[i * len..(i + 1) * len].to_vec(), used: 0, frame: frames[i] });
             }
         }
         let model_ms = t_model.elapsed().as_secs_f32() * 1e3;
@@ -427,10 +451,10 @@ impl<'m> Controller<'m> {
         let t_physics = Instant::now();
         let mut actions: Vec<Option<Vec<f32>>> = vec![None; self.envs.len()];
         for &e in &alive {
-            let (plan, used) = self.plans[e].as_mut().expect("planned above");
-            let at = traj.action(*used);
-            *used += 1;
-            let a: Vec<f32> = plan[at..at + NUM_DOFS].iter().map(|a| a.clamp(-1.0, 1.0)).collect();
+            let plan = self.plans[e].as_mut().expect("planned above");
+            let at = traj.action(plan.used);
+            plan.used += 1;
+            let a: Vec<f32> = plan.tau[at..at + NUM_DOFS].iter().map(|a| a.clamp(-1.0, 1.0)).collect();
             if let Some(j) = a.iter().position(|a| !a.is_finite()) {
                 return Err(ControlError::NonFinite { env: e, step: self.step, index: j });
             }
@@ -546,6 +570,10 @@ pub fn run(
                 let (plan, touched) =
                     (controller.intent(e).expect("acted on a plan"), controller.env(e).touching_obstacle());
                 out.record_action(e, step, a, &tasks[e].command(time), plan, touched);
+                if let Some((hand, _)) = tasks[e].reach {
+                    let at = controller.planned_body(e, hand.body()).expect("acted on a plan");
+                    out.record_planned_hand(e, step, at.to_array());
+                }
             }
         }
         for &e in &outcome.fell {

@@ -175,11 +175,7 @@ impl Reach {
 
     /// Hand position in the current frame, and its own-frame offset rotated into it.
     fn hand(&self, tau: &[f32], k: usize) -> ([f32; 3], [f32; 2]) {
-        let (p, b) = (self.layout.root_pos(k), self.layout.body_pos(k, self.body));
-        let (c, s) = (yaw(tau, &self.layout, k).cos(), yaw(tau, &self.layout, k).sin());
-        let (hx, hy) = (tau[b], tau[b + 1]);
-        let rotated = [c * hx - s * hy, s * hx + c * hy];
-        ([tau[p] + rotated[0], tau[p + 1] + rotated[1], tau[p + 2] + tau[b + 2]], rotated)
+        self.layout.body_in_frame(tau, k, self.body)
     }
 }
 

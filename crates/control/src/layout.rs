@@ -53,6 +53,18 @@ impl Layout {
         self.state(k) + offset::BODY_POS + 3 * b
     }
 
+    /// Body `b`'s position in state k in the current step's character frame (x, y; z the
+    /// height above the ground): `(root_x, root_y, root_z) + R_z(yaw_k) * body_k`, with
+    /// `body_k` its position in state k's own frame. Also the offset rotated into the current
+    /// frame, `R_z(yaw_k) * body_k` (x, y), which the reach cost's gradient needs.
+    pub fn body_in_frame(&self, tau: &[f32], k: usize, b: usize) -> ([f32; 3], [f32; 2]) {
+        let (p, at) = (self.root_pos(k), self.body_pos(k, b));
+        let (s, c) = tau[self.root_rot(k) + 2].sin_cos();
+        let (x, y) = (tau[at], tau[at + 1]);
+        let rotated = [c * x - s * y, s * x + c * y];
+        ([tau[p] + rotated[0], tau[p + 1] + rotated[1], tau[p + 2] + tau[at + 2]], rotated)
+    }
+
     /// What plan `tau` asks of the body: its mean root velocity over the horizon, each state's
     /// in its own heading (forward, left; m/s), and its heading's rate of change (rad/s, the
     /// least-squares slope through the heading at the current step, 0). The same three numbers

@@ -10,6 +10,7 @@
 //! | `command` | E x T x 8        | joystick (vx, vy, yaw rate), hand target xyz, waypoint xy   |
 //! | `contact` | E x T            | 1 where the humanoid touched an obstacle during the step     |
 //! | `plan`    | E x T x 3        | what the plan in force asked over its horizon: velocity in its own heading (forward, left m/s), turn rate (rad/s) |
+//! | `plan_hand` | E x T x 3      | where the plan in force put the task's hand at its horizon's end (world m; NaN without a hand target) |
 //! | `steps`   | E                | control steps survived (T unless the humanoid fell)         |
 //! | `model_ms`, `physics_ms` | T | wall time per control step for the whole batch            |
 //!
@@ -121,6 +122,9 @@ pub struct Rollout {
     /// What the plan in force at each step asked (E x T x 3, [`crate::Layout::intent`]; NaN
     /// after a fall and in files from before plans were kept).
     pub plan: Vec<f32>,
+    /// Where the plan in force at each step put the task's hand at its horizon's end (E x T x
+    /// 3, world; NaN without a hand target, after a fall and in files from before it was kept).
+    pub plan_hand: Vec<f32>,
     pub survived: Vec<usize>,
     pub model_ms: Vec<f32>,
     pub physics_ms: Vec<f32>,
@@ -142,6 +146,7 @@ impl Rollout {
             command: vec![0.0; envs * steps * COMMAND_DIM],
             contact: vec![0.0; envs * steps],
             plan: vec![f32::NAN; envs * steps * 3],
+            plan_hand: vec![f32::NAN; envs * steps * 3],
             survived: vec![steps; envs],
             model_ms: Vec::with_capacity(steps),
             physics_ms: Vec::with_capacity(steps),
@@ -177,6 +182,12 @@ impl Rollout {
         self.plan[at * 3..(at + 1) * 3].copy_from_slice(&plan);
         self.action[at * NUM_DOFS..(at + 1) * NUM_DOFS].copy_from_slice(action);
         self.command[at * COMMAND_DIM..(at + 1) * COMMAND_DIM].copy_from_slice(command);
+    }
+
+    /// Writes where the plan in force at step `k` (0..T) of environment `e` put the task's hand.
+    pub fn record_planned_hand(&mut self, e: usize, k: usize, hand: [f64; 3]) {
+        let at = (e * self.steps + k) * 3;
+        self.plan_hand[at..at + 3].copy_from_slice(&hand.map(|x| x as f32));
     }
 
     /// State `k` (0..=T) of environment `e`.
@@ -223,6 +234,13 @@ impl Rollout {
     pub fn plan(&self, e: usize, k: usize) -> [f32; 3] {
         let at = (e * self.steps + k) * 3;
         [self.plan[at], self.plan[at + 1], self.plan[at + 2]]
+    }
+
+    /// Where the plan in force at step `k` (0..T) of environment `e` put the task's hand (world
+    /// m; NaN where none was recorded).
+    pub fn planned_hand(&self, e: usize, k: usize) -> [f64; 3] {
+        let at = (e * self.steps + k) * 3;
+        [0, 1, 2].map(|i| f64::from(self.plan_hand[at + i]))
     }
 
     /// Control steps in which environment `e` touched an obstacle.
@@ -272,6 +290,7 @@ impl Rollout {
                 ("command", vec![e, t, COMMAND_DIM], &self.command),
                 ("contact", vec![e, t], &self.contact),
                 ("plan", vec![e, t, 3], &self.plan),
+                ("plan_hand", vec![e, t, 3], &self.plan_hand),
                 ("steps", vec![e], &survived),
                 ("model_ms", vec![t], &self.model_ms),
                 ("physics_ms", vec![t], &self.physics_ms),
@@ -322,6 +341,10 @@ impl Rollout {
             },
             plan: match file.shape("plan") {
                 Ok(_) => file.f32("plan", &[envs, t, 3])?,
+                Err(_) => vec![f32::NAN; envs * t * 3],
+            },
+            plan_hand: match file.shape("plan_hand") {
+                Ok(_) => file.f32("plan_hand", &[envs, t, 3])?,
                 Err(_) => vec![f32::NAN; envs * t * 3],
             },
             survived,

@@ -159,25 +159,33 @@ fn walking_up_to_a_hand_target_brings_the_hand_there() {
             [start[0] + x, start[1] + y, 0.82]
         })
         .collect();
-    let closest = |approach: bool| -> Vec<f64> {
+    let distance = |p: [f64; 3], e: usize| p.iter().zip(&targets[e]).map(|(a, b)| (a - b).powi(2)).sum::<f64>().sqrt();
+    // The closest the hand came, and the closest the plans put it, per environment.
+    let closest = |approach: bool| -> (Vec<f64>, Vec<f64>) {
         let tasks = targets.iter().map(|&t| Task { reach: Some((Hand::Right, t)), approach, ..Task::walk() }).collect();
         let r = run(&model, &h, &clip, tasks, &ControlConfig::new(2, 30.0, 4.0), "fm", |_| {}).unwrap();
+        let min = |d: &mut dyn Iterator<Item = f64>| d.fold(f64::INFINITY, f64::min);
         (0..4)
             .map(|e| {
-                (1..=r.survived[e])
-                    .map(|k| {
-                        r.body(e, k, body::R_HAND).iter().zip(&targets[e]).map(|(a, b)| (a - b).powi(2)).sum::<f64>()
-                    })
-                    .fold(f64::INFINITY, f64::min)
-                    .sqrt()
+                let planned: Vec<[f64; 3]> = (0..r.survived[e]).map(|k| r.planned_hand(e, k)).collect();
+                assert!(planned.iter().flatten().all(|x| x.is_finite()), "env {e}: a step without a planned hand");
+                (
+                    min(&mut (1..=r.survived[e]).map(|k| distance(r.body(e, k, body::R_HAND), e))),
+                    min(&mut planned.into_iter().map(|p| distance(p, e))),
+                )
             })
-            .collect()
+            .unzip()
     };
-    let (alone, approach) = (closest(false), closest(true));
-    eprintln!("closest hand-target distance (m): the hand's cost alone {alone:.2?}, walking up {approach:.2?}");
+    let ((alone, _), (approach, planned)) = (closest(false), closest(true));
+    eprintln!(
+        "closest hand-target distance (m): the hand's cost alone {alone:.2?}, walking up {approach:.2?}, its plans {planned:.2?}"
+    );
     let mean = |d: &[f64]| d.iter().sum::<f64>() / d.len() as f64;
     assert!(mean(&approach) < 0.2, "walking up: {approach:.2?}");
     assert!(mean(&approach) < mean(&alone), "alone {alone:.2?}, walking up {approach:.2?}");
+    // The plans, read back into the world, reach the target as the hand does: a plan read in
+    // the wrong frame, or with its heights counted from the pelvis, misses by a metre.
+    assert!(mean(&planned) < 0.2, "planned: {planned:.2?}");
 }
 
 /// With inverse dynamics, the executed action is what the shipped model's inverse dynamics reads

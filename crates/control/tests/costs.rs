@@ -281,3 +281,19 @@ fn a_plans_intent_is_its_own_frame_velocity_and_its_turn_rate() {
         "{forward} {left} {rate}"
     );
 }
+
+#[test]
+fn a_planned_body_is_read_into_the_current_frame() {
+    // State 3 stands 1 m ahead and 0.5 m to the left of the current step, turned a quarter to
+    // the left, its pelvis 0.8 m high and its hand 0.2 m ahead of it and 0.3 m up in its own
+    // frame: in the current frame the hand is 0.2 m further left, 1.1 m high.
+    let layout = Layout { horizon: 4 };
+    let mut tau = vec![0.0f32; layout.len()];
+    let (p, b) = (layout.root_pos(3), layout.body_pos(3, body::R_HAND));
+    tau[p..p + 3].copy_from_slice(&[1.0, 0.5, 0.8]);
+    tau[layout.root_rot(3) + 2] = std::f32::consts::FRAC_PI_2;
+    tau[b..b + 3].copy_from_slice(&[0.2, 0.0, 0.3]);
+    let (hand, rotated) = layout.body_in_frame(&tau, 3, body::R_HAND);
+    let near = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-6);
+    assert!(near(&hand, &[1.0, 0.7, 1.1]) && near(&rotated, &[0.0, 0.2]), "{hand:?} {rotated:?}");
+}

@@ -400,20 +400,34 @@ impl Study<'_> {
             name: "reach-standing",
             settings: self.settings(&format!("heights {low}-{high} m")),
             title: "Reaching while standing",
-            // Per trial: whether its target is low, and whether it reached and fell as a low one,
-            // so that the row can say how the low targets and the others fare apart.
-            columns: vec!["closest", "reached", "seconds", "fell", "low", "low_reached", "low_fell"],
+            // Per trial: its target's height, the hand's and the plans' closest approach; whether
+            // its target is low, and whether it reached, was planned to and fell as a low one, so
+            // that the row can say how the low targets and the others fare apart.
+            columns: vec![
+                "height",
+                "closest",
+                "planned_closest",
+                "reached",
+                "seconds",
+                "fell",
+                "low",
+                "low_reached",
+                "low_fell",
+                "planned",
+                "low_planned",
+            ],
             plot: "reached",
             x_label: "guidance scale w",
             y_label: "share within 0.10 m",
-            header: "| model | H | w | closest (m) | within 0.10 m | median time to reach (s) | falls | targets below 0.9 m: within 0.10 m / falls | the others |\n|---|---|---|---|---|---|---|---|---|",
+            header: "| model | H | w | closest (m) | within 0.10 m | planned within 0.10 m | median time to reach (s) | falls | targets below 0.9 m: within 0.10 m / planned / falls | the others |\n|---|---|---|---|---|---|---|---|---|---|",
         };
         let (near, far) = protocols::STANDING_DISTANCES;
         let notes = format!(
             "Standing (a zero joystick command), the right hand asked for a target {low}-{high} m high, {near}-{far} m out \
              from where the right shoulder starts (horizontally, from straight ahead to straight out to the side); 4 s; \
              reached when the hand comes within {} m; the median time to reach counts a trial that never reaches as \
-             never (a dash when half or more never do); targets below {} m, which ask the walker to bend, and the \
+             never (a dash when half or more never do); planned: a plan put the hand there at its horizon's end (H steps ahead, \
+             0.53 s at H 16), set beside the hand to tell a plan that misses from an execution that misses a plan; targets below {} m, which ask the walker to bend, and the \
              others each get their own share within reach and of falls; {trials} trials.",
             protocols::STANDING_REACHED,
             protocols::STANDING_LOW
@@ -428,7 +442,21 @@ impl Study<'_> {
                         let (reached, low) =
                             (rate(t.seconds_to_reach.is_finite()), rate(t.height < protocols::STANDING_LOW));
                         let fell = rate(t.reach.fell);
-                        vec![t.reach.min, reached, t.seconds_to_reach, fell, low, low * reached, low * fell]
+                        let planned = rate(t.reach.planned_min <= protocols::STANDING_REACHED);
+                        let (closest, planned_closest) = (t.reach.min, t.reach.planned_min);
+                        vec![
+                            t.height,
+                            closest,
+                            planned_closest,
+                            reached,
+                            t.seconds_to_reach,
+                            fell,
+                            low,
+                            low * reached,
+                            low * fell,
+                            planned,
+                            low * planned,
+                        ]
                     })
                     .collect())
             },
@@ -439,19 +467,22 @@ impl Study<'_> {
                 let (low, high) = (s.mean["low"], 1.0 - s.mean["low"]);
                 let share =
                     |part: f64, of: f64| if of > 0.0 { format!("{:.0}%", 100.0 * part / of) } else { "—".into() };
-                let (low_reached, low_fell) = (s.mean["low_reached"], s.mean["low_fell"]);
+                let (low_reached, low_fell, low_planned) = (s.mean["low_reached"], s.mean["low_fell"], s.mean["low_planned"]);
                 format!(
-                    "| {} | {} | {} | {:.3} | {:.0}% | {median} | {:.0}% | {} / {} of {:.0}% | {} / {} |",
+                    "| {} | {} | {} | {:.3} | {:.0}% | {:.0}% | {median} | {:.0}% | {} / {} / {} of {:.0}% | {} / {} / {} |",
                     m.label,
                     s.horizon,
                     s.point.scale,
                     s.mean["closest"],
                     100.0 * s.mean["reached"],
+                    100.0 * s.mean["planned"],
                     100.0 * s.mean["fell"],
                     share(low_reached, low),
+                    share(low_planned, low),
                     share(low_fell, low),
                     100.0 * low,
                     share(s.mean["reached"] - low_reached, high),
+                    share(s.mean["planned"] - low_planned, high),
                     share(s.mean["fell"] - low_fell, high),
                 )
             },

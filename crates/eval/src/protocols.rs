@@ -252,15 +252,21 @@ pub struct ReachTrial {
     pub mean: f64,
     pub rms: f64,
     pub min: f64,
+    /// The closest the plans put the hand, at their horizons' end (NaN where the rollout holds
+    /// no planned hands): a plan that reaches beside a hand that does not is the execution's
+    /// miss, a plan that misses is the model's (or guidance's).
+    pub planned_min: f64,
     pub fell: bool,
 }
 
 impl ReachTrial {
-    /// The distances of `hands` (one position a step) from `target`.
-    fn of(hands: &[[f64; 3]], target: [f64; 3], fell: bool) -> Self {
+    /// The distances of `hands` (one position a step) and `planned` (where each step's plan
+    /// put the hand) from `target`.
+    fn of(hands: &[[f64; 3]], planned: &[[f64; 3]], target: [f64; 3], fell: bool) -> Self {
         let (mean, rms) = reach_errors(hands, &vec![target; hands.len()]);
-        let min = hands.iter().map(|h| distance(h, &target)).fold(f64::INFINITY, f64::min);
-        Self { mean, rms, min, fell }
+        let closest = |points: &[[f64; 3]]| points.iter().map(|h| distance(h, &target)).fold(f64::INFINITY, f64::min);
+        let planned_min = if planned.iter().any(|p| p[0].is_finite()) { closest(planned) } else { f64::NAN };
+        Self { mean, rms, min: closest(hands), planned_min, fell }
     }
 
     /// The hand came within [`HAND_REACHED`] of the target at some step.
@@ -365,12 +371,11 @@ pub fn reach_standing(
     let r = bench.run("reach-standing", tasks, point, 4.0, false, on_step)?;
     Ok((0..trials)
         .map(|e| {
-            let (hands, target) = hand_and_target(&r, e).expect("reach task");
-            let reach = ReachTrial::of(&hands, target, r.fell(e));
+            let path = HandPath::of(&r, e).expect("reach task");
             // Step k + 1 is the first within reach (the hands start at step 1).
-            let first = hands.iter().position(|h| distance(h, &target) <= STANDING_REACHED);
+            let first = path.hands.iter().position(|h| distance(h, &path.target) <= STANDING_REACHED);
             let seconds_to_reach = first.map_or(f64::INFINITY, |k| (k + 1) as f64 / CONTROL_HZ);
-            StandingReachTrial { height: target[2], reach, seconds_to_reach }
+            StandingReachTrial { height: path.target[2], reach: path.trial(r.fell(e)), seconds_to_reach }
         })
         .collect())
 }
@@ -378,15 +383,29 @@ pub fn reach_standing(
 /// The hand-to-target distances of one environment of a rollout whose task reaches (`None`
 /// for a task without a hand target).
 pub fn reach_trial(r: &Rollout, e: usize) -> Option<ReachTrial> {
-    let (hands, target) = hand_and_target(r, e)?;
-    Some(ReachTrial::of(&hands, target, r.fell(e)))
+    HandPath::of(r, e).map(|path| path.trial(r.fell(e)))
 }
 
-/// Where the asked hand of environment `e` is at each step 1..=survived, and its target
-/// (`None` for a task without a hand target).
-fn hand_and_target(r: &Rollout, e: usize) -> Option<(Vec<[f64; 3]>, [f64; 3])> {
-    let (hand, target) = r.info.tasks[e].reach?;
-    Some(((1..=r.survived[e]).map(|k| r.body(e, k, hand.body())).collect(), target))
+/// The asked hand of one environment: where it is at each step 1..=survived, where the plans in
+/// force over steps 0..survived put it, and its target.
+struct HandPath {
+    hands: Vec<[f64; 3]>,
+    planned: Vec<[f64; 3]>,
+    target: [f64; 3],
+}
+
+impl HandPath {
+    /// Environment `e`'s (`None` for a task without a hand target).
+    fn of(r: &Rollout, e: usize) -> Option<Self> {
+        let (hand, target) = r.info.tasks[e].reach?;
+        let hands = (1..=r.survived[e]).map(|k| r.body(e, k, hand.body())).collect();
+        let planned = (0..r.survived[e].min(r.steps)).map(|k| r.planned_hand(e, k)).collect();
+        Some(Self { hands, planned, target })
+    }
+
+    fn trial(&self, fell: bool) -> ReachTrial {
+        ReachTrial::of(&self.hands, &self.planned, self.target, fell)
+    }
 }
 
 fn distance(a: &[f64], b: &[f64]) -> f64 {

@@ -40,7 +40,7 @@ pub const STAND_REACH_SHARE: f64 = 0.9;
 
 /// The standing reaches: 30 s in place, a hand out 90% of the time.
 pub fn standing_reaches() -> GaitParams {
-    let reach = Some(Reaching { share: STAND_REACH_SHARE, seed: 0 });
+    let reach = Some(Reaching { share: STAND_REACH_SHARE, seed: 0, heights: Default::default() });
     GaitParams { speed: 0.0, duration: 30.0, reach, ..GaitParams::default() }
 }
 
@@ -92,7 +92,7 @@ pub fn corpus(humanoid: &Arc<Humanoid>, p: &CorpusParams) -> Result<Corpus, Moti
     }
     clips.push(generate(humanoid, BACKWARD_WALK, &backward_walk())?.0);
     for seed in 1..=p.reaching as u64 {
-        let reach = Some(Reaching { share: REACH_SHARE, seed });
+        let reach = Some(Reaching { share: REACH_SHARE, seed, heights: Default::default() });
         let walk = WanderParams { seed, duration: p.duration, reach, ..Default::default() };
         clips.push(wander(humanoid, &format!("reach_{seed}"), &walk)?.0);
     }

@@ -163,13 +163,30 @@ pub fn wide_stances(reaches: &[Reach]) -> Vec<WideStance> {
     out
 }
 
-/// How often hands reach in a generated clip, and the seed of their targets.
+/// How often hands reach in a generated clip, the seed of their targets, and how their heights
+/// are drawn.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Reaching {
     /// Share of the time a hand is out (approach, hold and return), 0-0.9.
     pub share: f64,
     pub seed: u64,
+    /// Clips from before the choice drew [`TargetHeights::Split`].
+    #[serde(default)]
+    pub heights: TargetHeights,
+}
+
+/// How a reach's target height is drawn within [`HEIGHTS`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum TargetHeights {
+    /// A third below [`LOW`], the rest above [`HIGH`]: the heights a walking hand never holds.
+    #[default]
+    Split,
+    /// Uniform over [`HEIGHTS`], [`LOW`]-[`HIGH`] too: a hand held in front of the waist or
+    /// chest, near the body, is as far from a walking hand's swing as a high one (the standing
+    /// reach protocol missed such targets with `Split`'s data, the plans as much as the hand).
+    Uniform,
 }
 
 impl Reaching {
@@ -191,7 +208,11 @@ impl Reaching {
         let mut t = rng.random_range(0.3..1.0_f64.max(mean_gap));
         loop {
             let r = loop {
-                let (lowest, highest) = if rng.random_bool(LOW_SHARE) { (HEIGHTS[0], LOW) } else { (HIGH, HEIGHTS[1]) };
+                let (lowest, highest) = match self.heights {
+                    TargetHeights::Split if rng.random_bool(LOW_SHARE) => (HEIGHTS[0], LOW),
+                    TargetHeights::Split => (HIGH, HEIGHTS[1]),
+                    TargetHeights::Uniform => (HEIGHTS[0], HEIGHTS[1]),
+                };
                 let r = Reach {
                     start: t,
                     approach: rng.random_range(APPROACH[0]..APPROACH[1]),

@@ -8,7 +8,7 @@ mod common;
 
 use flowmimic_motion::clip::BODY_SPEED_JUMP;
 use flowmimic_motion::generator::{self, Schedule};
-use flowmimic_motion::reach::{self, Reaching};
+use flowmimic_motion::reach::{self, Reaching, TargetHeights};
 use flowmimic_motion::{Clip, GaitParams, RetargetReport, WanderParams, generate, wander};
 use flowmimic_sim::skeleton::body;
 use flowmimic_sim::{CONTROL_HZ, Humanoid, SimConfig};
@@ -32,20 +32,28 @@ const TORSO: [usize; 4] = [body::PELVIS, body::TORSO, body::SPINE, body::CHEST];
 fn reaching_clips(h: &Arc<Humanoid>) -> Vec<(Clip, Schedule, RetargetReport)> {
     let mut clips = Vec::new();
     for seed in 1..=3 {
-        let p = WanderParams { seed, duration: 30.0, reach: Some(Reaching { share: 0.5, seed }), ..Default::default() };
+        let p = WanderParams {
+            seed,
+            duration: 30.0,
+            reach: Some(Reaching { share: 0.5, seed, heights: Default::default() }),
+            ..Default::default()
+        };
         let (clip, report) = wander(h, "reach", &p).unwrap();
         clips.push((clip, p.schedule(), report));
     }
     let mut rng = rand::rngs::StdRng::seed_from_u64(11);
     for k in 0..8 {
-        let standing = k == 0;
+        // Two standing clips, one with each way of drawing heights; uniform heights in every
+        // other walk.
+        let standing = k < 2;
+        let heights = if k % 2 == 1 { TargetHeights::Uniform } else { TargetHeights::Split };
         let p = GaitParams {
             speed: if standing { 0.0 } else { rng.random_range(-0.6..1.5) },
             lateral: if standing { 0.0 } else { rng.random_range(-0.2..0.2) },
             turn_rate: if standing { 0.0 } else { rng.random_range(-0.5..0.5) },
             heading: rng.random_range(-3.0..3.0),
             duration: 15.0,
-            reach: Some(Reaching { share: 0.7, seed: k }),
+            reach: Some(Reaching { share: 0.7, seed: k, heights }),
             ..Default::default()
         };
         let (clip, report) = generate(h, "reach", &p).unwrap();
@@ -64,7 +72,7 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
     let h = Humanoid::new(SimConfig::default()).unwrap();
     let mut env = h.env();
     let (mut reaches, mut low, mut lowest, mut highest, mut worst_balance) = (0, 0, f64::MAX, 0.0_f64, 0.0_f64);
-    let mut lowest_pelvis = f64::MAX;
+    let (mut lowest_pelvis, mut middle) = (f64::MAX, 0);
     let (mut planted_worst, mut shared_stances) = (0.0_f64, 0);
     for (n, (clip, schedule, report)) in reaching_clips(&h).iter().enumerate() {
         let targets = generator::reach_targets(schedule);
@@ -88,6 +96,7 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
             }
             assert!(worst < 0.02, "{what}: the hand is {:.1} cm from its target during the hold", 100.0 * worst);
             low += usize::from(r.height < reach::LOW);
+            middle += usize::from((reach::LOW..reach::HIGH).contains(&r.height));
             lowest = lowest.min(r.height);
             highest = highest.max(r.height);
             // Low targets are reached by bending: the pelvis lower or the chest tilted.
@@ -188,6 +197,8 @@ fn reaching_hands_hold_their_targets_and_the_walk_keeps_its_invariants() {
     // low, reached with a squat (a third are drawn there; some low and far are out of reach).
     assert!(lowest < 0.6 && highest > 1.6, "targets {lowest:.2}-{highest:.2} m high");
     assert!(4 * low >= reaches, "{low} of {reaches} targets below {} m", reach::LOW);
+    // Uniform heights hold targets in front of the waist and chest, which split ones never do.
+    assert!(middle > 0, "no target {}-{} m high", reach::LOW, reach::HIGH);
     eprintln!(
         "{low} of {reaches} targets below {} m; the lowest pelvis while holding {lowest_pelvis:.2} m",
         reach::LOW

@@ -368,6 +368,8 @@ struct Acted {
     action: Vec<f32>,
     command: [f32; flowmimic_control::task::COMMAND_DIM],
     plan: [f32; 3],
+    /// Where the plan put the task's hand (with a hand target).
+    plan_hand: Option<[f64; 3]>,
     touched: bool,
 }
 
@@ -464,6 +466,10 @@ impl Simulation<'_> {
                                 action: a.clone(),
                                 command: task.command(time),
                                 plan: controller.intent(0).expect("acted on a plan"),
+                                plan_hand: task
+                                    .reach
+                                    .and_then(|(hand, _)| controller.planned_body(0, hand.body()))
+                                    .map(|p| p.to_array()),
                                 touched: controller.env(0).touching_obstacle(),
                             });
                             r.rows.push(Row::of(controller.env(0)));
@@ -551,6 +557,9 @@ impl Simulation<'_> {
         }
         for (k, a) in r.actions.iter().enumerate() {
             rollout.record_action(0, k, &a.action, &a.command, a.plan, a.touched);
+            if let Some(hand) = a.plan_hand {
+                rollout.record_planned_hand(0, k, hand);
+            }
         }
         (rollout.model_ms, rollout.physics_ms) = (r.model_ms, r.physics_ms);
         let seconds = r.started.duration_since(UNIX_EPOCH).map_or(0, |d| d.as_secs());
