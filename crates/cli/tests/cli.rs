@@ -249,12 +249,18 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     // Reaching while standing starts from a standing clip and reports the median time to reach.
     let standing = ["eval", "reach", "--standing", "--model", "fm=fm", "--scales", "0", "--trials", "2", "-o", "eval"];
     let text = ok(dir, &standing);
-    assert!(text.contains("| within 0.10 m | median time to reach (s) |"), "{text}");
+    assert!(text.contains("| within 0.10 m | planned within 0.10 m | median time to reach (s) |"), "{text}");
     // Low targets are reported apart: the row's share of them is the CSV's, trial by trial.
     let csv = std::fs::read_to_string(dir.join("eval/reach-standing.csv")).unwrap();
-    let low: Vec<f64> = csv.lines().skip(1).map(|l| l.split(',').nth(13).unwrap().parse().unwrap()).collect();
+    let column = |name: &str| -> Vec<f64> {
+        let at = csv.lines().next().unwrap().split(',').position(|c| c == name).expect(name);
+        csv.lines().skip(1).map(|l| l.split(',').nth(at).unwrap().parse().unwrap()).collect()
+    };
+    let low = column("low");
     let share = 100.0 * low.iter().sum::<f64>() / low.len() as f64;
-    assert!(text.contains("| targets below 0.9 m: within 0.10 m / falls |"), "{text}");
+    assert!(text.contains("| targets below 0.9 m: within 0.10 m / planned / falls |"), "{text}");
+    // Every trial records where its plans put the hand, unguided too.
+    assert!(column("planned_closest").iter().all(|d| d.is_finite()), "{csv}");
     assert!(text.contains(&format!(" of {share:.0}% |")), "{share}% low in the CSV:\n{text}");
     // Two models in one sweep, each at its own recommended.toml's settings.
     std::fs::write(dir.join("fm/recommended.toml"), "[waypoint]\nguidance_scale = 10.0\ninverse_dynamics = 0.5\n")
