@@ -40,7 +40,7 @@ fn rollout(steps: usize, yaw_rate: f64, turn: f64, fall: usize) -> Rollout {
         command: Vec::new(),
         contact: vec![0.0; steps],
         plan: [0.6, 0.0, 0.0].repeat(steps),
-        plan_hand: vec![f32::NAN; steps * 3],
+        plan_hand: [0.2, -0.3, 1.1].repeat(steps),
         survived: vec![fall],
         model_ms: vec![1.0; steps],
         physics_ms: vec![1.0; steps],
