@@ -443,11 +443,10 @@ impl Study<'_> {
                             (rate(t.seconds_to_reach.is_finite()), rate(t.height < protocols::STANDING_LOW));
                         let fell = rate(t.reach.fell);
                         let planned = rate(t.reach.planned_min <= protocols::STANDING_REACHED);
-                        let (closest, planned_closest) = (t.reach.min, t.reach.planned_min);
                         vec![
                             t.height,
-                            closest,
-                            planned_closest,
+                            t.reach.min,
+                            t.reach.planned_min,
                             reached,
                             t.seconds_to_reach,
                             fell,

@@ -399,7 +399,7 @@ impl HandPath {
     fn of(r: &Rollout, e: usize) -> Option<Self> {
         let (hand, target) = r.info.tasks[e].reach?;
         let hands = (1..=r.survived[e]).map(|k| r.body(e, k, hand.body())).collect();
-        let planned = (0..r.survived[e].min(r.steps)).map(|k| r.planned_hand(e, k)).collect();
+        let planned = (0..r.survived[e]).map(|k| r.planned_hand(e, k)).collect();
         Some(Self { hands, planned, target })
     }
 
