@@ -171,13 +171,18 @@ impl DriveArgs {
     pub fn choose_over(&self, model: &Settings, source: &str, task: &str) -> Result<Chosen> {
         let g = &self.guidance;
         let mut said = Vec::new();
+        // An unguided walk uses no guidance setting: naming them would suggest it does.
+        let guided = task != "walk";
+        let guidance_only = ["w", "adaptive", "acceleration", "guidance steps", "approach"];
         let mut pick = |name: &str, flag: Option<String>, from_model: Option<String>, default: &str| {
             let (value, source) = match (flag, from_model) {
                 (Some(v), _) => (v, "flag"),
                 (None, Some(v)) => (v, source),
                 (None, None) => (default.to_string(), "default"),
             };
-            said.push(format!("{name} {value} ({source})"));
+            if guided || !guidance_only.contains(&name) {
+                said.push(format!("{name} {value} ({source})"));
+            }
         };
         let fmt = |x: Option<f32>| x.map(|x| format!("{x}"));
         let interval = |i: Option<(usize, usize)>| i.map(|(a, b)| format!("{a}:{b}"));

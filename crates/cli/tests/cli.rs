@@ -133,6 +133,11 @@ fn trajectory_model_trains_resumes_and_drives(dir: &Path) {
     let (refused, text) =
         flowmimic(dir, &["--config", "clean.toml", "train", "data", "--objective", "fm", "-o", "fm-part", "--resume"]);
     assert!(!refused && text.contains("prediction: Sample"), "{text}");
+    // And another learning rate: a resumed run may change only its length.
+    std::fs::write(dir.join("lr.toml"), "[train]\nlr = 0.0005\n").unwrap();
+    let (refused, text) =
+        flowmimic(dir, &["--config", "lr.toml", "train", "data", "--objective", "fm", "-o", "fm-part", "--resume"]);
+    assert!(!refused && text.contains("train.lr") && text.contains("(now 0.0005)"), "{text}");
     ok(dir, &["train", "data", "--objective", "fm", "-o", "fm-part", "--resume"]);
     let tensors = |p: &str| tensor_bytes(&dir.join(p));
     assert!(tensors("fm/model.safetensors") == tensors("fm-part/model.safetensors"), "resume is not exact");
@@ -481,7 +486,9 @@ fn a_newcomers_mistakes_get_clear_answers() {
     // The model's recommended settings where a flag is absent, each said with its source.
     assert!(run.contains("NFE 2 (model), w 50 (model), adaptive 1.5 (model)"), "{run}");
     let flagged = ok(&dir, &["run", "--seconds", "0.2", "--nfe", "1", "-o", "w.rollout.safetensors"]);
-    assert!(flagged.contains("settings for walk: NFE 1 (flag), w 10 (default)"), "{flagged}");
+    // An unguided walk names no guidance setting.
+    assert!(flagged.contains("settings for walk: NFE 1 (flag), inverse dynamics"), "{flagged}");
+    assert!(!flagged.contains("w 10") && !flagged.contains("adaptive"), "{flagged}");
     // A port in use is said once.
     let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let port = taken.local_addr().unwrap().port().to_string();

@@ -194,7 +194,7 @@ impl Cost for Reach {
             let (h, rotated) = self.hand(tau, k);
             let e: Vec<f32> = (0..3).map(|i| 2.0 * (h[i] - self.target[i])).collect();
             let (p, b, r) = (self.layout.root_pos(k), self.layout.body_pos(k, self.body), self.layout.root_rot(k) + 2);
-            let (c, s) = (yaw(tau, &self.layout, k).cos(), yaw(tau, &self.layout, k).sin());
+            let (s, c) = yaw(tau, &self.layout, k).sin_cos();
             for i in 0..3 {
                 grad[p + i] += e[i];
             }

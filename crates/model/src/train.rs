@@ -309,6 +309,9 @@ struct ModelMeta {
     layout: TokenLayout,
     step: usize,
     dataset: String,
+    /// The run's `[train]` settings (absent in files written before they were recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    train: Option<TrainConfig>,
 }
 
 impl ModelMeta {
@@ -360,6 +363,14 @@ impl Trainer {
         if meta.dataset != ours.dataset {
             return Err(file.error("was trained on another dataset (shard checksums differ)").into());
         }
+        if let Some(saved) = &meta.train {
+            let changed = changed_train_keys(saved, &t.config);
+            if !changed.is_empty() {
+                let message =
+                    format!("was trained with other settings: {}; use another output directory", changed.join(", "));
+                return Err(file.error(message).into());
+            }
+        }
         let n = t.model.net.net.num_params();
         t.model.net.net.params = file.f32("params", &[n])?;
         t.adam.m = file.f32("adam_m", &[n])?;
@@ -376,6 +387,7 @@ impl Trainer {
             layout: *self.model.layout(),
             step: self.step,
             dataset: self.dataset_key.clone(),
+            train: Some(self.config.clone()),
         }
     }
 
@@ -494,6 +506,22 @@ impl Trainer {
         tensors::save(&dir.join(CHECKPOINT_FILE), &state, info)?;
         Ok(())
     }
+}
+
+/// The `[train]` keys whose values differ between a checkpoint's run and this one, as
+/// `train.KEY SAVED (now NEW)`; a resumed run may change only its length and how often it logs,
+/// validates and checkpoints.
+fn changed_train_keys(saved: &TrainConfig, ours: &TrainConfig) -> Vec<String> {
+    let free = ["steps", "log_every", "checkpoint_every", "validation_windows"];
+    // Through text, so that an f32 reads as written (0.001, not 0.0010000000474974513).
+    let table = |c: &TrainConfig| -> serde_json::Map<String, serde_json::Value> {
+        serde_json::from_str(&serde_json::to_string(c).expect("serialisable")).expect("a table")
+    };
+    let (a, b) = (table(saved), table(ours));
+    a.iter()
+        .filter(|(k, v)| !free.contains(&k.as_str()) && b.get(k.as_str()) != Some(v))
+        .map(|(k, v)| format!("train.{k} {v} (now {})", b.get(k.as_str()).unwrap_or(&serde_json::Value::Null)))
+        .collect()
 }
 
 /// Whether rollout `rollout` of shard `s` is held out for validation: a fixed hash of both,
