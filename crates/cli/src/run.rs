@@ -171,29 +171,30 @@ impl DriveArgs {
     pub fn choose_over(&self, model: &Settings, source: &str, task: &str) -> Result<Chosen> {
         let g = &self.guidance;
         let mut said = Vec::new();
-        // An unguided walk uses no guidance setting: naming them would suggest it does.
-        let guided = task != "walk";
-        let guidance_only = ["w", "adaptive", "acceleration", "guidance steps", "approach"];
         let mut pick = |name: &str, flag: Option<String>, from_model: Option<String>, default: &str| {
             let (value, source) = match (flag, from_model) {
                 (Some(v), _) => (v, "flag"),
                 (None, Some(v)) => (v, source),
                 (None, None) => (default.to_string(), "default"),
             };
-            if guided || !guidance_only.contains(&name) {
-                said.push(format!("{name} {value} ({source})"));
-            }
+            said.push(format!("{name} {value} ({source})"));
         };
         let fmt = |x: Option<f32>| x.map(|x| format!("{x}"));
         let interval = |i: Option<(usize, usize)>| i.map(|(a, b)| format!("{a}:{b}"));
         pick("NFE", self.nfe.map(|n| n.to_string()), model.nfe.map(|n| n.to_string()), &DEFAULT_NFE.to_string());
-        pick("w", fmt(self.guidance_scale), fmt(model.guidance_scale), &DEFAULT_SCALE.to_string());
-        pick("adaptive", fmt(g.adaptive), fmt(model.adaptive), "0");
+        // An unguided walk uses no guidance setting: naming them would suggest it does.
+        let guided = task != "walk";
+        if guided {
+            pick("w", fmt(self.guidance_scale), fmt(model.guidance_scale), &DEFAULT_SCALE.to_string());
+            pick("adaptive", fmt(g.adaptive), fmt(model.adaptive), "0");
+        }
         pick("inverse dynamics", fmt(g.inverse_dynamics), fmt(model.inverse_dynamics), "0");
-        pick("acceleration", fmt(g.acceleration), fmt(model.acceleration), "0");
-        let model_interval = model.guidance_interval.map(|[a, b]| (a, b));
-        pick("guidance steps", interval(g.guidance_interval), interval(model_interval), "all but the last quarter");
-        pick("approach", self.approach.map(|a| a.to_string()), model.approach.map(|a| a.to_string()), "false");
+        if guided {
+            pick("acceleration", fmt(g.acceleration), fmt(model.acceleration), "0");
+            let model_interval = model.guidance_interval.map(|[a, b]| (a, b));
+            pick("guidance steps", interval(g.guidance_interval), interval(model_interval), "all but the last quarter");
+            pick("approach", self.approach.map(|a| a.to_string()), model.approach.map(|a| a.to_string()), "false");
+        }
         let start = |a: Option<StartActions>| a.map(|a| setting_name(&a));
         pick("start actions", start(g.start_actions), start(model.start_actions), "pd-targets");
         eprintln!("settings for {task}: {}", said.join(", "));

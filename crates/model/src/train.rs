@@ -476,14 +476,14 @@ impl Trainer {
     /// Loss on (up to `validation_windows`) held-out windows spread evenly over the held-out
     /// set, with fixed noise, comparable across steps; `None` without a validation set.
     pub fn validation_loss(&self) -> Option<f32> {
-        let n = self.data.validation_len().min(self.config.validation_windows);
+        let len = self.data.validation_len();
+        let n = len.min(self.config.validation_windows);
         if n == 0 {
             return None;
         }
         let mut rng = StdRng::seed_from_u64(self.config.seed.wrapping_add(1));
         let chunk = 256;
         // Spread over every held-out rollout: the first windows alone are one rollout of one clip.
-        let len = self.data.validation_len();
         let rows: Vec<usize> = (0..n).map(|i| i * len / n).collect();
         let total: f32 =
             rows.chunks(chunk).map(|r| self.loss(&self.data.validation, r, &mut rng, false).0 * r.len() as f32).sum();
