@@ -249,10 +249,9 @@ pub fn finish(
     summaries: &[Summary],
     table: String,
 ) -> Result<()> {
-    flowmimic_io::write_atomic(
-        &out.join(format!("{name}.json")),
-        serde_json::to_string_pretty(&summaries)?.as_bytes(),
-    )?;
+    let json = out.join(format!("{name}.json"));
+    let merged = merged_summaries(flowmimic_io::read_to_string(&json).ok().as_deref(), summaries)?;
+    flowmimic_io::write_atomic(&json, serde_json::to_string_pretty(&merged)?.as_bytes())?;
     let report = out.join("report.md");
     let mut text = flowmimic_io::read_to_string(&report).unwrap_or_else(|_| "# flowmimic evaluation report\n".into());
     // Quoted where a shell would split or read them, so the command pastes back as it ran.
@@ -279,6 +278,30 @@ pub fn finish(
     println!("{table}");
     eprintln!("wrote {name}.csv, {name}.json, {name}.png/svg and appended to {}", report.display());
     Ok(())
+}
+
+/// The JSON summary's points: this run's, and those of earlier runs into the same folder that
+/// this run did not measure again (the CSV keeps every point's trials; the summary follows it).
+/// A point is its fields other than the statistics; a file that does not read as a list of
+/// points is replaced.
+fn merged_summaries(earlier: Option<&str>, summaries: &[Summary]) -> Result<Vec<serde_json::Value>> {
+    fn identity(v: &serde_json::Value) -> Option<serde_json::Map<String, serde_json::Value>> {
+        let mut fields = v.as_object()?.clone();
+        for statistic in ["trials", "mean", "std", "median"] {
+            fields.remove(statistic);
+        }
+        Some(fields)
+    }
+    let new: Vec<serde_json::Value> =
+        summaries.iter().map(serde_json::to_value).collect::<std::result::Result<_, _>>()?;
+    let mut kept: Vec<serde_json::Value> = earlier
+        .and_then(|text| serde_json::from_str::<Vec<serde_json::Value>>(text).ok())
+        .unwrap_or_default()
+        .into_iter()
+        .filter(|old| identity(old).is_some_and(|id| !new.iter().any(|n| identity(n).as_ref() == Some(&id))))
+        .collect();
+    kept.extend(new);
+    Ok(kept)
 }
 
 /// A model for the report: label, folder, network, and the settings it ran at (the NFEs of its
@@ -402,5 +425,41 @@ mod tests {
         assert_eq!(m(&[1.0, f64::INFINITY]), f64::INFINITY);
         assert_eq!(m(&[2.0, f64::NAN, 1.0]), 1.5);
         assert!(m(&[f64::NAN]).is_nan());
+    }
+
+    #[test]
+    fn the_json_summary_keeps_earlier_points_and_replaces_those_measured_again() {
+        use super::{Point, Summary};
+        let summary = |scale: f32, rmse: f64| Summary {
+            model: "fm".into(),
+            dir: "m".into(),
+            objective: "fm".into(),
+            horizon: 16,
+            point: Point {
+                nfe: 5,
+                scale,
+                execute: 1,
+                seed: 0,
+                gradient: Default::default(),
+                guidance_steps: None,
+                adaptive: None,
+                inverse_dynamics: 0.0,
+                acceleration: 0.0,
+                start_actions: Default::default(),
+                approach: false,
+            },
+            trials: 20,
+            mean: [("rmse".to_string(), rmse)].into(),
+            std: Default::default(),
+            median: Default::default(),
+        };
+        let first =
+            serde_json::to_string(&super::merged_summaries(None, &[summary(0.0, 0.8), summary(50.0, 0.5)]).unwrap())
+                .unwrap();
+        let second = super::merged_summaries(Some(&first), &[summary(50.0, 0.4), summary(100.0, 0.3)]).unwrap();
+        let points: Vec<(f64, f64)> =
+            second.iter().map(|p| (p["scale"].as_f64().unwrap(), p["mean"]["rmse"].as_f64().unwrap())).collect();
+        assert_eq!(points, [(0.0, 0.8), (50.0, 0.4), (100.0, 0.3)]);
+        assert_eq!(super::merged_summaries(Some("not json"), &[summary(0.0, 0.8)]).unwrap().len(), 1);
     }
 }
