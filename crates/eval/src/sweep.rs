@@ -294,11 +294,12 @@ fn merged_summaries(earlier: Option<&str>, summaries: &[Summary]) -> Result<Vec<
     }
     let new: Vec<serde_json::Value> =
         summaries.iter().map(serde_json::to_value).collect::<std::result::Result<_, _>>()?;
+    let measured: Vec<_> = new.iter().filter_map(identity).collect();
     let mut kept: Vec<serde_json::Value> = earlier
         .and_then(|text| serde_json::from_str::<Vec<serde_json::Value>>(text).ok())
         .unwrap_or_default()
         .into_iter()
-        .filter(|old| identity(old).is_some_and(|id| !new.iter().any(|n| identity(n).as_ref() == Some(&id))))
+        .filter(|old| identity(old).is_some_and(|id| !measured.contains(&id)))
         .collect();
     kept.extend(new);
     Ok(kept)
