@@ -5,7 +5,8 @@ use crate::TrackError;
 use crate::ppo::{self, Normaliser, Optimiser, Policy, RolloutBuffer, UpdateStats};
 use crate::task::{Ending, OBS_DIM, Reference, RewardConfig, RewardTerms, Tracker};
 use flowmimic_io::le;
-use flowmimic_motion::Clip;
+use flowmimic_motion::coverage::walking_velocities;
+use flowmimic_motion::{Clip, Coverage};
 use flowmimic_nn::Adam;
 use flowmimic_sim::{CONTROL_HZ, Humanoid, NUM_DOFS};
 use rand::rngs::StdRng;
@@ -893,6 +894,14 @@ pub struct EvalReport {
     /// The reference frame each failed episode ended at, ascending: a clip that fails at the
     /// same frames from every start has a part the policy cannot track.
     pub failure_frames: Vec<usize>,
+    /// Shares of the episodes' steps that walk backward and that sidestep, and the same shares
+    /// of the reference from the start frame (`flowmimic_motion::Coverage`'s thresholds on the
+    /// root's 1 s velocities): an expert that steps in place where the reference walks back
+    /// shows here.
+    pub backward: f64,
+    pub reference_backward: f64,
+    pub sidestep: f64,
+    pub reference_sidestep: f64,
 }
 
 /// How [`evaluate`] runs: `episodes` deterministic episodes from frame `start_frame` (with the
@@ -1007,6 +1016,10 @@ pub fn evaluate(
             }
         }
     }
+    let poses = |path: &[([f64; 3], usize)]| path.iter().map(|(pose, _)| *pose).collect::<Vec<_>>();
+    let ours = Coverage::of_walks(paths.iter().map(|p| walking_velocities(&poses(p))).collect());
+    let reference_path: Vec<[f64; 3]> = clip.qpos[start_frame..].iter().map(|q| root_pose(q)).collect();
+    let theirs = Coverage::of(walking_velocities(&reference_path));
     Ok(EvalReport {
         clip: clip.name.clone(),
         episodes,
@@ -1022,6 +1035,10 @@ pub fn evaluate(
             failure_frames.sort_unstable();
             failure_frames
         },
+        backward: ours.backward,
+        reference_backward: theirs.backward,
+        sidestep: ours.sidestep,
+        reference_sidestep: theirs.sidestep,
     })
 }
 

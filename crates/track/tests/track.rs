@@ -164,6 +164,23 @@ fn one_policy_trains_on_several_clips() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Evaluation sets the episodes' backward and sidestep shares beside the reference's, each
+/// measured on its own path: an untrained policy falls, swaying where the reference walks
+/// straight back.
+#[test]
+fn evaluation_measures_the_path_beside_the_reference() {
+    let (h, forward) = setup();
+    let back = generate(&h, "back", &GaitParams { speed: -0.6, duration: 2.0, ..Default::default() }).unwrap().0;
+    let trainer = Trainer::new(&h, vec![back.clone()], tiny()).unwrap();
+    let setup = flowmimic_track::EvalSetup { episodes: 2, start_frame: 0, kicks: false, seed: 0 };
+    let eval = |clip: &Clip| flowmimic_track::evaluate(&h, &trainer.policy, clip, &tiny(), setup).unwrap();
+    let report = eval(&back);
+    assert!(report.reference_backward > 0.8 && report.reference_sidestep < 0.05, "{report:?}");
+    assert!((report.sidestep - report.reference_sidestep).abs() > 0.1, "{report:?}");
+    let report = eval(&forward);
+    assert!(report.reference_backward == 0.0 && report.reference_sidestep < 0.05, "{report:?}");
+}
+
 #[test]
 fn bench_reports_ppo_beside_the_physics_of_the_same_iterations() {
     let (h, clip) = setup();
