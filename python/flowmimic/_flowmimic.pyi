@@ -105,7 +105,15 @@ class Expert:
 class Tracking:
     """The tracking task over `envs` humanoids stepped in Rust threads (use `flowmimic.gym`)."""
 
-    def __init__(self, clip: Clip, envs: int = 1, kicks: bool = False, random_start: bool = False, seed: int = 0) -> None: ...
+    def __init__(
+        self,
+        clip: Clip,
+        envs: int = 1,
+        kicks: bool = False,
+        random_start: bool = False,
+        seed: int = 0,
+        observe_ahead: bool = False,
+    ) -> None: ...
     @property
     def envs(self) -> int: ...
     @property

@@ -33,12 +33,15 @@ def _spaces(obs_dim: int) -> Tuple[spaces.Box, spaces.Box]:
 
 class TrackingEnv(gym.Env):
     """One humanoid tracking `clip`. `kicks`: a random push of up to 0.5 m/s every second;
-    `random_start`: episodes start at a random frame (reference state initialisation)."""
+    `random_start`: episodes start at a random frame (reference state initialisation);
+    `observe_ahead`: observations hold the reference 1/3 s and 1 s ahead too."""
 
     metadata: Dict[str, Any] = {"render_modes": []}
 
-    def __init__(self, clip: Clip, kicks: bool = False, random_start: bool = False, seed: int = 0):
-        self._task = Tracking(clip, 1, kicks, random_start, seed)
+    def __init__(
+        self, clip: Clip, kicks: bool = False, random_start: bool = False, seed: int = 0, observe_ahead: bool = False
+    ):
+        self._task = Tracking(clip, 1, kicks, random_start, seed, observe_ahead)
         self.observation_space, self.action_space = _spaces(self._task.obs_dim)
 
     def reset(self, *, seed: Optional[int] = None, options: Optional[Dict[str, Any]] = None):
@@ -60,8 +63,16 @@ class TrackingVectorEnv(VectorEnv):
 
     metadata: Dict[str, Any] = {"render_modes": [], "autoreset_mode": AutoresetMode.SAME_STEP}
 
-    def __init__(self, clip: Clip, num_envs: int, kicks: bool = False, random_start: bool = True, seed: int = 0):
-        self._task = Tracking(clip, num_envs, kicks, random_start, seed)
+    def __init__(
+        self,
+        clip: Clip,
+        num_envs: int,
+        kicks: bool = False,
+        random_start: bool = True,
+        seed: int = 0,
+        observe_ahead: bool = False,
+    ):
+        self._task = Tracking(clip, num_envs, kicks, random_start, seed, observe_ahead)
         self.num_envs = num_envs
         self.single_observation_space, self.single_action_space = _spaces(self._task.obs_dim)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, num_envs)

@@ -13,7 +13,7 @@ use flowmimic_motion::{Clip as Motion, GaitParams, ImportOptions};
 use flowmimic_sim::{BODY_NAMES, Humanoid, NUM_BODIES, NUM_DOFS, Obstacle, STATE_DIM, SimConfig};
 use flowmimic_track::TrackConfig;
 use flowmimic_track::ppo::Policy;
-use flowmimic_track::task::{Ending, OBS_DIM, Reference, Tracker};
+use flowmimic_track::task::{Ending, Reference, Tracker, obs_dim};
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::exceptions::{PyRuntimeError, PyValueError};
 use pyo3::prelude::*;
@@ -462,10 +462,19 @@ struct Tracking {
 #[pymethods]
 impl Tracking {
     /// `kicks`: a random push of up to 0.5 m/s every second (the kick protocol); `random_start`:
-    /// episodes start at a random frame (reference state initialisation) instead of the first.
+    /// episodes start at a random frame (reference state initialisation) instead of the first;
+    /// `observe_ahead`: observations hold the reference 1/3 s and 1 s ahead too, as for an
+    /// expert trained with `track.observe_ahead`.
     #[new]
-    #[pyo3(signature = (clip, envs = 1, kicks = false, random_start = false, seed = 0))]
-    fn new(clip: &Clip, envs: usize, kicks: bool, random_start: bool, seed: u64) -> PyResult<Self> {
+    #[pyo3(signature = (clip, envs = 1, kicks = false, random_start = false, seed = 0, observe_ahead = false))]
+    fn new(
+        clip: &Clip,
+        envs: usize,
+        kicks: bool,
+        random_start: bool,
+        seed: u64,
+        observe_ahead: bool,
+    ) -> PyResult<Self> {
         if !(1..=4096).contains(&envs) {
             return Err(bad(format!("{envs} environments: 1 to 4096")));
         }
@@ -480,6 +489,7 @@ impl Tracking {
         let cfg = TrackConfig {
             push_max: if kicks { 0.5 } else { 0.0 },
             push_interval: [1.0, 1.0],
+            observe_ahead,
             ..TrackConfig::default()
         };
         Ok(Self {
@@ -499,7 +509,7 @@ impl Tracking {
     /// Length of one observation.
     #[getter]
     fn obs_dim(&self) -> usize {
-        OBS_DIM
+        obs_dim(self.cfg.observe_ahead)
     }
 
     /// Frames of the reference clip.
@@ -527,7 +537,7 @@ impl Tracking {
         let rng = &mut self.rngs[e];
         let frame = if self.random_start { rng.random_range(0..self.reference.len() - 2) } else { 0 };
         self.trackers[e].reset(&self.reference, frame, &self.cfg, rng).map_err(bad)?;
-        let mut obs = vec![0.0; OBS_DIM];
+        let mut obs = vec![0.0; self.obs_dim()];
         self.trackers[e].observe(&self.reference, &mut obs);
         Ok(obs.into_pyarray(py))
     }
@@ -553,6 +563,7 @@ impl Tracking {
         if n != envs {
             return Err(bad(format!("{n} action rows for {envs} environments")));
         }
+        let width = self.obs_dim();
         let (reference, cfg) = (&self.reference, &self.cfg);
         let ended: Vec<(f32, Ending, Vec<f32>)> = py.detach(|| {
             self.trackers
@@ -561,13 +572,13 @@ impl Tracking {
                 .zip(u.par_chunks(NUM_DOFS))
                 .map(|((t, rng), u)| {
                     let (terms, ending) = t.step(reference, u, cfg, rng);
-                    let mut obs = vec![0.0; OBS_DIM];
+                    let mut obs = vec![0.0; width];
                     t.observe(reference, &mut obs);
                     (terms.total(&cfg.reward), ending, obs)
                 })
                 .collect()
         });
-        let mut obs = Vec::with_capacity(envs * OBS_DIM);
+        let mut obs = Vec::with_capacity(envs * width);
         let (mut reward, mut terminated, mut truncated) = (Vec::new(), Vec::new(), Vec::new());
         for (r, ending, o) in ended {
             obs.extend(o);
@@ -576,7 +587,7 @@ impl Tracking {
             truncated.push(ending == Ending::ClipEnd);
         }
         Ok((
-            matrix(py, obs, envs, OBS_DIM)?,
+            matrix(py, obs, envs, width)?,
             reward.into_pyarray(py),
             terminated.into_pyarray(py),
             truncated.into_pyarray(py),
@@ -602,7 +613,7 @@ impl Expert {
     /// Length of one observation (proprioception and the reference ahead).
     #[getter]
     fn obs_dim(&self) -> usize {
-        OBS_DIM
+        self.policy.obs_dim()
     }
 
     /// Deterministic normalised actions `[n, 69]` for raw observations `[n, obs_dim]`.
@@ -611,7 +622,7 @@ impl Expert {
         py: Python<'py>,
         observations: PyReadonlyArray2<'py, f32>,
     ) -> PyResult<Bound<'py, PyArray2<f32>>> {
-        let (obs, n) = rows(&observations, OBS_DIM, "observations")?;
+        let (obs, n) = rows(&observations, self.policy.obs_dim(), "observations")?;
         let actions = py.detach(|| self.policy.act(obs, n));
         matrix(py, actions, n, NUM_DOFS)
     }

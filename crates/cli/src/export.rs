@@ -8,7 +8,7 @@ use flowmimic_geom::{heading, quat_from_wxyz};
 use flowmimic_model::{Objective, TrajectoryModel};
 use flowmimic_sim::Humanoid;
 use flowmimic_sim::{NUM_DOFS, STATE_DIM};
-use flowmimic_track::task::{OBS_DIM, Reference, Tracker};
+use flowmimic_track::task::{Reference, Tracker};
 use flowmimic_track::train::Checkpoint;
 use rand::SeedableRng;
 use rand::rngs::StdRng;
@@ -111,13 +111,14 @@ pub fn run(
             let reference = Reference::new(crate::track::run_clips(humanoid, path)?.remove(0));
             let cfg = checkpoint.config()?;
             let mut tracker = Tracker::new(humanoid);
-            let mut obs = vec![0.0; n * OBS_DIM];
-            for (i, row) in obs.chunks_exact_mut(OBS_DIM).enumerate() {
+            let mut obs = vec![0.0; n * policy.obs_dim()];
+            for (i, row) in obs.chunks_exact_mut(policy.obs_dim()).enumerate() {
                 tracker.reset(&reference, i * (reference.len() - 1) / n, &cfg, &mut rng)?;
                 tracker.observe(&reference, row);
             }
             let actions = policy.act(&obs, n);
-            let tensors = [("obs", vec![n, OBS_DIM], &obs[..]), ("action", vec![n, actions.len() / n], &actions[..])];
+            let tensors =
+                [("obs", vec![n, policy.obs_dim()], &obs[..]), ("action", vec![n, actions.len() / n], &actions[..])];
             flowmimic_io::tensors::save(check, &tensors, HashMap::new())?;
             eprintln!("wrote {}: {n} observations and flowmimic's actions", check.display());
         }

@@ -331,9 +331,13 @@ pub fn bench(humanoid: &Arc<Humanoid>, cfg: &TrackConfig, iterations: usize) -> 
     );
     let peak = flowmimic_nn::sgemm_gflops(512, 20);
     let mut rng = <rand::rngs::StdRng as rand::SeedableRng>::seed_from_u64(0);
-    let params =
-        flowmimic_track::ppo::Policy::new(flowmimic_track::task::OBS_DIM, flowmimic_sim::NUM_DOFS, cfg, &mut rng)
-            .num_params() as f64;
+    let params = flowmimic_track::ppo::Policy::new(
+        flowmimic_track::task::obs_dim(cfg.observe_ahead),
+        flowmimic_sim::NUM_DOFS,
+        cfg,
+        &mut rng,
+    )
+    .num_params() as f64;
     // An MLP forward pass costs 2 FLOPs per weight and sample; backward twice that.
     let update_flops = 6.0 * params * (cfg.envs * cfg.horizon * cfg.epochs) as f64;
     println!(

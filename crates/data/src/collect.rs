@@ -17,7 +17,7 @@ use flowmimic_motion::Clip;
 use flowmimic_sim::{Humanoid, NUM_DOFS, STATE_DIM};
 use flowmimic_track::TrackConfig;
 use flowmimic_track::ppo::Policy;
-use flowmimic_track::task::{Ending, OBS_DIM, Reference, Tracker};
+use flowmimic_track::task::{Ending, Reference, Tracker};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
@@ -142,9 +142,9 @@ pub fn collect(
         lane.tracker.reset(&reference, i * frames / n, &run_cfg, &mut lane.rng)?;
     }
     let started = std::time::Instant::now();
-    let mut obs = vec![0.0f32; n * OBS_DIM];
+    let mut obs = vec![0.0f32; n * expert.obs_dim()];
     for step in 0..steps {
-        lanes.par_iter().zip(obs.par_chunks_mut(OBS_DIM)).for_each(|(l, o)| l.tracker.observe(&reference, o));
+        lanes.par_iter().zip(obs.par_chunks_mut(expert.obs_dim())).for_each(|(l, o)| l.tracker.observe(&reference, o));
         let u = expert.act(&obs, n);
         let last = step + 1 == steps;
         let endings: Vec<Result<(), DataError>> = lanes

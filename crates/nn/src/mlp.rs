@@ -88,6 +88,19 @@ impl Mlp {
         self.layers[0].inputs
     }
 
+    /// Appends `extra` inputs with zero weights: the outputs stay what they were, whatever the
+    /// new inputs hold, until training moves their weights.
+    pub fn widen_inputs(&mut self, extra: usize) {
+        let first = &mut self.layers[0];
+        let (i, o) = (first.inputs, first.outputs);
+        let mut weight = vec![0.0; o * (i + extra)];
+        for (row, old) in weight.chunks_exact_mut(i + extra).zip(first.weight.chunks_exact(i)) {
+            row[..i].copy_from_slice(old);
+        }
+        first.weight = weight;
+        first.inputs = i + extra;
+    }
+
     pub fn outputs(&self) -> usize {
         self.layers.last().expect("layers").outputs
     }

@@ -71,6 +71,26 @@ impl Policy {
         }
     }
 
+    /// Observation entries the policy reads.
+    pub fn obs_dim(&self) -> usize {
+        self.actor.inputs()
+    }
+
+    /// This policy reading more observation entries, one per index of `counterparts`, with
+    /// zero weights (it acts and values states as before) and the statistics of the entry it
+    /// names, so that the new entries start normalised.
+    pub fn widened(mut self, counterparts: &[usize]) -> Self {
+        self.actor.widen_inputs(counterparts.len());
+        self.critic.widen_inputs(counterparts.len());
+        let n = &mut self.normaliser;
+        for &j in counterparts {
+            let (mean, var) = (n.mean[j], n.var[j]);
+            n.mean.push(mean);
+            n.var.push(var);
+        }
+        self
+    }
+
     /// Flat parameters: actor, critic, log-std.
     pub fn params(&self) -> Vec<f32> {
         [self.actor.params(), self.critic.params(), self.log_std.clone()].concat()

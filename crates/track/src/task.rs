@@ -15,8 +15,31 @@ use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
-/// Observation width: proprioception (148) and the reference one step ahead (147).
-pub const OBS_DIM: usize = 148 + 147;
+/// Observation width: proprioception and the reference one step ahead (147).
+pub const OBS_DIM: usize = PROPRIOCEPTION + 147;
+/// Root height, tilt, linear and angular velocity, hinge angles and velocities.
+const PROPRIOCEPTION: usize = 10 + 2 * NUM_DOFS;
+
+/// Reference frames ahead (1/3 s and 1 s) whose pose a policy trained with
+/// `track.observe_ahead` observes too: seeing only the next frame, a policy cannot shift its
+/// weight before a bend or a reversal begins.
+pub const AHEAD_FRAMES: [usize; 2] = [10, 30];
+/// Observation entries per frame ahead: the reference's hinges and its root's position and
+/// orientation relative to the character.
+pub const AHEAD_DIM: usize = NUM_DOFS + 6;
+
+/// Observation width of a policy that observes the frames ahead or not.
+pub fn obs_dim(observe_ahead: bool) -> usize {
+    if observe_ahead { OBS_DIM + AHEAD_FRAMES.len() * AHEAD_DIM } else { OBS_DIM }
+}
+
+/// For each entry of the frames-ahead block, its counterpart for the next frame (hinges, root
+/// position and orientation): a policy widened to observe ahead starts their statistics there.
+pub fn ahead_counterparts() -> Vec<usize> {
+    let hinges = PROPRIOCEPTION..PROPRIOCEPTION + NUM_DOFS;
+    let root = OBS_DIM - 9..OBS_DIM - 3;
+    AHEAD_FRAMES.iter().flat_map(|_| hinges.clone().chain(root.clone())).collect()
+}
 
 /// One term of the tracking reward: `weight * exp(-err^2 / sigma^2)`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -305,8 +328,11 @@ impl Tracker {
         Ok(())
     }
 
-    /// Writes the observation (unnormalised) into `out`.
+    /// Writes the observation (unnormalised) into `out`, which is [`obs_dim`] wide: with the
+    /// frames ahead when it has room for them.
     pub fn observe(&self, reference: &Reference, out: &mut [f32]) {
+        let width = out.len();
+        assert!(width == OBS_DIM || width == obs_dim(true), "observation width {width}");
         let (q, v) = (self.env.qpos(), self.env.qvel());
         let k = self.env.bodies();
         let frame = k.frame();
@@ -331,7 +357,16 @@ impl Tracker {
         put(&frame.point(r.pos[body::PELVIS]).to_array(), 1.0);
         put(&rotvec(root.conjugate() * r.rot[body::PELVIS]).to_array(), 1.0);
         put(&frame.vector(r.lin_vel[body::PELVIS]).to_array(), 1.0);
-        debug_assert_eq!(at, OBS_DIM);
+        if width > OBS_DIM {
+            for ahead in AHEAD_FRAMES {
+                let t = (self.frame + ahead).min(reference.len() - 1);
+                let r = &reference.clip.bodies[t];
+                put(reference.hinges(t), 1.0);
+                put(&frame.point(r.pos[body::PELVIS]).to_array(), 1.0);
+                put(&rotvec(root.conjugate() * r.rot[body::PELVIS]).to_array(), 1.0);
+            }
+        }
+        debug_assert_eq!(at, width);
     }
 
     /// The environment action for policy output `u`.

@@ -3,7 +3,7 @@
 
 use crate::TrackError;
 use crate::ppo::{self, Normaliser, Optimiser, Policy, RolloutBuffer, UpdateStats};
-use crate::task::{Ending, OBS_DIM, Reference, RewardConfig, RewardTerms, Tracker};
+use crate::task::{self, Ending, Reference, RewardConfig, RewardTerms, Tracker};
 use flowmimic_io::le;
 use flowmimic_motion::coverage::walking_velocities;
 use flowmimic_motion::{Clip, Coverage};
@@ -93,6 +93,11 @@ pub struct TrackConfig {
     /// follows seconds of drift is practised from a fresh start there, without the drift;
     /// episodes from the first frame carry it, as `track eval` does.
     pub first_frame_share: f64,
+    /// Whether a new policy also observes the reference 1/3 s and 1 s ahead
+    /// ([`crate::task::AHEAD_FRAMES`]), not only its next frame. A policy started (`--init`) from
+    /// one that does not gets the new inputs with zero weights, so it acts as before until PPO
+    /// moves them. A trained policy's width says which it is wherever it is loaded.
+    pub observe_ahead: bool,
     /// Seed of the policy's initial weights, the episodes' draws and the action noise.
     pub seed: u64,
     /// Iterations between checkpoints.
@@ -136,6 +141,7 @@ impl Default for TrackConfig {
             clip_length_share: 0.5,
             clip_failure_share: 0.0,
             first_frame_share: 0.0,
+            observe_ahead: false,
             seed: 0,
             checkpoint_every: 25,
             reward: RewardConfig::default(),
@@ -396,7 +402,7 @@ impl Trainer {
             )));
         }
         let mut rng = StdRng::seed_from_u64(cfg.seed);
-        let policy = Policy::new(OBS_DIM, NUM_DOFS, &cfg, &mut rng);
+        let policy = Policy::new(task::obs_dim(cfg.observe_ahead), NUM_DOFS, &cfg, &mut rng);
         let opt = Optimiser { adam: Adam::new(policy.num_params()), lr: cfg.learning_rate as f32 };
         let references: Vec<Arc<Reference>> = clips.into_iter().map(|c| Arc::new(Reference::new(c))).collect();
         let samplers = references.iter().map(|r| StartSampler::new(r.len(), &cfg)).collect();
@@ -457,7 +463,7 @@ impl Trainer {
         let (refs, clips) = (&self.references, &self.env_clips);
         self.trackers
             .par_iter()
-            .zip(out.par_chunks_mut(OBS_DIM))
+            .zip(out.par_chunks_mut(self.policy.obs_dim()))
             .zip(clips)
             .for_each(|((t, o), &c)| t.observe(&refs[c], o));
     }
@@ -468,7 +474,7 @@ impl Trainer {
         let gamma = self.cfg.gamma as f32;
         let mut rollout = RolloutBuffer {
             envs: e,
-            obs: Vec::with_capacity(e * horizon * OBS_DIM),
+            obs: Vec::with_capacity(e * horizon * self.policy.obs_dim()),
             actions: Vec::with_capacity(e * horizon * NUM_DOFS),
             log_probs: Vec::new(),
             means: Vec::with_capacity(e * horizon * NUM_DOFS),
@@ -487,7 +493,7 @@ impl Trainer {
         let (mut reward_sum, mut error_sum, mut ended_lengths) = (0.0f64, 0.0f64, 0usize);
         let mut term_means = RewardTerms::default();
         let step_weight = 1.0 / (e * horizon) as f32;
-        let mut raw = vec![0.0f32; e * OBS_DIM];
+        let mut raw = vec![0.0f32; e * self.policy.obs_dim()];
         self.observe_all(&mut raw);
         let started = Instant::now();
         for _ in 0..horizon {
@@ -616,7 +622,7 @@ impl Trainer {
             ("config", serde_json::to_string(&self.cfg).expect("json")),
             ("clip", self.clip_names()),
             ("clip_frames", self.clip_frames()),
-            ("obs_dim", OBS_DIM.to_string()),
+            ("obs_dim", p.obs_dim().to_string()),
             ("act_dim", NUM_DOFS.to_string()),
             ("iteration", self.iteration.to_string()),
             ("env_steps", self.env_steps.to_string()),
@@ -698,6 +704,12 @@ impl Trainer {
         let saved = ck.config()?;
         if saved.envs != cfg.envs {
             return Err(bad(format!("checkpoint has {} envs; the config asks for {}", saved.envs, cfg.envs)));
+        }
+        if saved.observe_ahead != cfg.observe_ahead {
+            return Err(bad(format!(
+                "checkpoint has track.observe_ahead = {}; the config asks for {}",
+                saved.observe_ahead, cfg.observe_ahead
+            )));
         }
         let mut trainer = Self::from_checkpoint(humanoid, clips, cfg, &ck)?;
         trainer.opt.adam.m = ck.f32s("adam_m", trainer.policy.num_params())?;
@@ -817,6 +829,17 @@ impl Checkpoint {
         Ok(le::values(&self.raw(name, Dtype::F64, len)?))
     }
 
+    /// The stored policy's observation width, one this version writes.
+    fn obs_dim(&self) -> Result<usize, TrackError> {
+        let obs_dim = self.number("obs_dim")? as usize;
+        if ![task::obs_dim(false), task::obs_dim(true)].contains(&obs_dim)
+            || self.number("act_dim")? as usize != NUM_DOFS
+        {
+            return Err(self.bad("observation or action size differs from this version's".into()));
+        }
+        Ok(obs_dim)
+    }
+
     /// The config stored with the policy.
     pub fn config(&self) -> Result<TrackConfig, TrackError> {
         let cfg: TrackConfig =
@@ -826,16 +849,28 @@ impl Checkpoint {
     }
 
     /// Loads weights and observation statistics into a policy of the stored shape.
+    /// A policy that observes the frames ahead can be loaded from one that does not (widened:
+    /// [`Policy::widened`]), not the other way round.
     pub fn load_policy(&self, policy: &mut Policy) -> Result<(), TrackError> {
-        if self.number("obs_dim")? as usize != OBS_DIM || self.number("act_dim")? as usize != NUM_DOFS {
-            return Err(self.bad("observation or action size differs from this version's".into()));
+        let stored = self.obs_dim()?;
+        if stored < policy.obs_dim() {
+            let mut narrow = Policy::new(stored, NUM_DOFS, &self.config()?, &mut StdRng::seed_from_u64(0));
+            self.load_policy(&mut narrow)?;
+            *policy = narrow.widened(&task::ahead_counterparts());
+            return Ok(());
+        }
+        if stored != policy.obs_dim() {
+            return Err(self.bad(
+                "the policy observes the reference ahead (track.observe_ahead); the config asks for one that does not"
+                    .into(),
+            ));
         }
         policy.actor.set_params(&self.f32s("actor", policy.actor.num_params())?);
         policy.critic.set_params(&self.f32s("critic", policy.critic.num_params())?);
         policy.log_std = self.f32s("log_std", NUM_DOFS)?;
         let normaliser = Normaliser {
-            mean: self.f64s("obs_mean", OBS_DIM)?,
-            var: self.f64s("obs_var", OBS_DIM)?,
+            mean: self.f64s("obs_mean", stored)?,
+            var: self.f64s("obs_var", stored)?,
             count: self.number("obs_count")?,
         };
         let valid = normaliser.mean.iter().all(|m| m.is_finite())
@@ -855,12 +890,13 @@ impl Checkpoint {
     pub fn policy(&self) -> Result<Policy, TrackError> {
         let cfg = self.config()?;
         // The stored tensors must have the configured shape before a network of it is allocated.
+        let obs_dim = self.obs_dim()?;
         for (name, out) in [("actor", NUM_DOFS), ("critic", 1)] {
-            let sizes = [&[OBS_DIM][..], &cfg.hidden, &[out]].concat();
+            let sizes = [&[obs_dim][..], &cfg.hidden, &[out]].concat();
             let params: usize = sizes.windows(2).map(|w| w[0] * w[1] + w[1]).sum();
             self.raw(name, Dtype::F32, params)?;
         }
-        let mut policy = Policy::new(OBS_DIM, NUM_DOFS, &cfg, &mut StdRng::seed_from_u64(0));
+        let mut policy = Policy::new(obs_dim, NUM_DOFS, &cfg, &mut StdRng::seed_from_u64(0));
         self.load_policy(&mut policy)?;
         Ok(policy)
     }
@@ -966,9 +1002,9 @@ pub fn evaluate(
     let (mut path_error_sum, mut path_n) = (0.0, 0usize);
     let (mut offset_sum, mut heading_sum) = (0.0, 0.0);
     let mut failure_frames = Vec::new();
-    let mut raw = vec![0.0f32; episodes * OBS_DIM];
+    let mut raw = vec![0.0f32; episodes * policy.obs_dim()];
     for _ in start_frame..reference.len() - 1 {
-        trackers.par_iter().zip(raw.par_chunks_mut(OBS_DIM)).for_each(|(t, o)| t.observe(&reference, o));
+        trackers.par_iter().zip(raw.par_chunks_mut(policy.obs_dim())).for_each(|(t, o)| t.observe(&reference, o));
         let actions = policy.act(&raw, episodes);
         let results: Vec<(RewardTerms, Ending)> =
             trackers

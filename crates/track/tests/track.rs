@@ -3,7 +3,7 @@
 
 use flowmimic_motion::{Clip, GaitParams, generate};
 use flowmimic_sim::{Humanoid, NUM_DOFS, SimConfig};
-use flowmimic_track::task::{Ending, OBS_DIM, Reference, Tracker};
+use flowmimic_track::task::{AHEAD_DIM, AHEAD_FRAMES, Ending, OBS_DIM, Reference, Tracker, obs_dim};
 use flowmimic_track::train::Checkpoint;
 use flowmimic_track::{TrackConfig, Trainer};
 use rand::SeedableRng;
@@ -161,6 +161,49 @@ fn one_policy_trains_on_several_clips() {
     let wider = TrackConfig { hidden: vec![64, 64], ..tiny() };
     let err = Trainer::warm_start(&h, vec![b], wider, &path).err().unwrap().to_string();
     assert!(err.contains("hidden") && err.contains("policy.safetensors"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// A policy with `observe_ahead` observes the reference's hinges 10 and 30 frames ahead after
+/// what every policy observes; warm-started from one without, it acts as that one did whatever
+/// the new entries hold, and a checkpoint of it loads only where the config asks for it.
+#[test]
+fn a_policy_observing_ahead_sees_the_reference_ahead_and_starts_where_its_start_was() {
+    let (h, clip) = setup();
+    let reference = Reference::new(clip);
+    let cfg = TrackConfig { init_noise: 0.0, ..tiny() };
+    let mut tracker = Tracker::new(&h);
+    tracker.reset(&reference, 5, &cfg, &mut rand::rngs::StdRng::seed_from_u64(0)).unwrap();
+    let (mut narrow, mut wide) = (vec![0.0; OBS_DIM], vec![f32::NAN; obs_dim(true)]);
+    tracker.observe(&reference, &mut narrow);
+    tracker.observe(&reference, &mut wide);
+    assert_eq!(wide.len(), OBS_DIM + AHEAD_FRAMES.len() * AHEAD_DIM);
+    assert_eq!(wide[..OBS_DIM], narrow[..]);
+    for (k, ahead) in AHEAD_FRAMES.into_iter().enumerate() {
+        let block = &wide[OBS_DIM + k * AHEAD_DIM..][..NUM_DOFS];
+        let hinges: Vec<f32> = reference.clip.qpos[5 + ahead][7..].iter().map(|&q| q as f32).collect();
+        assert_eq!(block, &hinges[..], "{ahead} frames ahead");
+    }
+    assert!(wide.iter().all(|x| x.is_finite()));
+
+    let dir = std::env::temp_dir().join(format!("flowmimic-track-ahead-{}", std::process::id()));
+    let path = dir.join("policy.safetensors");
+    let mut start = Trainer::new(&h, vec![reference.clip.clone()], tiny()).unwrap();
+    start.iterate().unwrap();
+    start.save(&path).unwrap();
+    let ahead = TrackConfig { observe_ahead: true, ..tiny() };
+    let mut warm = Trainer::warm_start(&h, vec![reference.clip.clone()], ahead.clone(), &path).unwrap();
+    assert_eq!(warm.policy.obs_dim(), obs_dim(true));
+    let mut noisy = wide.clone();
+    noisy[OBS_DIM..].iter_mut().enumerate().for_each(|(i, x)| *x += (i % 7) as f32 - 3.0);
+    assert_eq!(warm.policy.act(&noisy, 1), start.policy.act(&narrow, 1), "the new inputs start unused");
+    warm.iterate().unwrap();
+    warm.save(&path).unwrap();
+    assert_eq!(Checkpoint::read(&path).unwrap().policy().unwrap().obs_dim(), obs_dim(true));
+    let err = Trainer::warm_start(&h, vec![reference.clip.clone()], tiny(), &path).err().unwrap().to_string();
+    assert!(err.contains("observe_ahead"), "{err}");
+    let err = Trainer::resume(&h, vec![reference.clip], tiny(), &path).err().unwrap().to_string();
+    assert!(err.contains("observe_ahead"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
 
