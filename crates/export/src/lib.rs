@@ -10,8 +10,9 @@
 //! holds the config, objective, token layout, number of times and the normalisation statistics
 //! as JSON; `examples/onnx_check.py` writes out each objective's sampler.
 //!
-//! `policy.onnx` (an expert): input `obs` (B x 295, raw observations), output `action` (B x 69,
-//! the deterministic action); the observation normalisation is folded in.
+//! `policy.onnx` (an expert): input `obs` (B x 295, or 445 with `track.observe_ahead`; raw
+//! observations), output `action` (B x 69, the deterministic action); the observation
+//! normalisation is folded in.
 
 use flowmimic_model::TrajectoryModel;
 use flowmimic_track::ppo::Policy;
