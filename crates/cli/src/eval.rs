@@ -39,6 +39,10 @@ pub struct Common {
     /// Actions of each sampled trajectory executed before sampling again (1 = the paper).
     #[arg(long, default_value_t = 1)]
     execute: usize,
+    /// Execute each plan with this tracking policy (a `track train` run on `track plan-clips`'
+    /// clips) in place of the plan's own action, for every model.
+    #[arg(long, value_name = "RUN")]
+    executor: Option<PathBuf>,
     /// Start trials from this clip's frames (default: the generated straight walk).
     #[arg(long)]
     clip: Option<PathBuf>,
@@ -50,7 +54,18 @@ impl Common {
     /// Settings for a programmatic run (the pipeline): models as LABEL=DIR.
     pub fn new(models: Vec<String>, out: PathBuf, quick: bool) -> Self {
         let guidance = GuidanceArgs::default();
-        Self { models, out, quick, trials: None, seed: 0, save_rollouts: false, execute: 1, clip: None, guidance }
+        Self {
+            models,
+            out,
+            quick,
+            trials: None,
+            seed: 0,
+            save_rollouts: false,
+            execute: 1,
+            executor: None,
+            clip: None,
+            guidance,
+        }
     }
 }
 
@@ -243,7 +258,11 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
                 approach: chosen.approach,
             };
             crate::run::check_sampler(&model, &dir, &sampler.control(0.0))?;
-            lib(EvalModel::new(&label, &dir, model, sampler))
+            let mut m = lib(EvalModel::new(&label, &dir, model, sampler))?;
+            if let Some(executor) = &common.executor {
+                m = lib(m.with_executor(executor))?;
+            }
+            Ok(m)
         })
         .collect()
 }

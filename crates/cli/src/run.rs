@@ -66,6 +66,11 @@ pub struct RunArgs {
     /// receding horizon, up to H + 1).
     #[arg(long, default_value_t = 1)]
     pub execute: usize,
+    /// Execute each plan with this tracking policy (a `track train` run on `track plan-clips`'
+    /// clips) in place of the plan's own action: it steers the body back to the plan's next
+    /// state after a push.
+    #[arg(long, value_name = "RUN")]
+    pub executor: Option<PathBuf>,
     /// Environments run at once (one batched model call per step).
     #[arg(long, default_value_t = 1, value_parser = crate::args::envs)]
     pub envs: usize,
@@ -436,7 +441,13 @@ impl RunArgs {
 
     pub fn control(&self, chosen: &Chosen) -> ControlConfig {
         let plain = chosen.control(self.drive.guidance.gradient, self.seconds());
-        ControlConfig { execute: self.execute, paced: self.paced, seed: self.seed, ..plain }
+        ControlConfig {
+            execute: self.execute,
+            executor: self.executor.clone(),
+            paced: self.paced,
+            seed: self.seed,
+            ..plain
+        }
     }
 }
 
@@ -509,8 +520,10 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     };
     let label =
         if model.config.task_labels { format!(", task label {}", setting_name(&task.label())) } else { String::new() };
+    let executed =
+        control.executor.as_ref().map(|r| format!(", plans executed by {}", r.display())).unwrap_or_default();
     eprintln!(
-        "{} model (H {}{label}), NFE {}, {guidance}, task {name}, {} env(s), {} s",
+        "{} model (H {}{label}), NFE {}, {guidance}{executed}, task {name}, {} env(s), {} s",
         model.objective.label(),
         model.layout().spec.horizon,
         control.nfe,

@@ -6,6 +6,7 @@ use clap::Subcommand;
 use flowmimic_motion::Clip;
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::{CONTROL_HZ, Humanoid};
+use flowmimic_track::plan::{PlanClipSetup, plan_clips};
 use flowmimic_track::train::{Checkpoint, ClipLog, EvalReport, IterationLog};
 use flowmimic_track::{EvalSetup, TrackConfig, Trainer, evaluate};
 use std::path::{Path, PathBuf};
@@ -36,6 +37,30 @@ pub enum TrackCommand {
         /// counters. Fine-tunes, for example, the corpus expert on one clip.
         #[arg(long)]
         init: Option<PathBuf>,
+    },
+    /// Clips that look like a guidance model's plans, to train a policy that executes plans
+    /// (`--executor` of `run` and `eval`): the expert's rollouts with the data's action noise,
+    /// whose hinges are its clean PD targets (each frame the next state's root and the action
+    /// that leads to it). Writes <out>/<clip>_plan<n>.clip.safetensors.
+    PlanClips {
+        /// The expert's run directory (or policy file).
+        expert: PathBuf,
+        /// The clips the expert tracks (`--clip runs/corpus/wander_1.clip.safetensors ...`).
+        #[arg(long, num_args = 1.., required = true)]
+        clip: Vec<PathBuf>,
+        /// Folder the clips are written in.
+        #[arg(short, long)]
+        out: PathBuf,
+        /// Rollouts per clip, each from a random frame.
+        #[arg(long, default_value_t = 16, value_parser = crate::args::count)]
+        per_clip: usize,
+        /// Seconds per rollout (shorter where it fails: the second before a failure is dropped).
+        #[arg(long, default_value_t = 10.0)]
+        seconds: f64,
+        /// Seed of the rollouts' starts, noise levels and noise; clips are named from it
+        /// (`_plan<seed * 1000 + n>`), so that two seeds' clips can share a folder.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
     },
     /// Redraw a run's learning curves (reward, episode length, error) from its log.csv.
     Plot {
@@ -136,6 +161,34 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
                 (false, None) => Start::Fresh,
             };
             train(humanoid, clips, &out, &cfg, start)?;
+        }
+        TrackCommand::PlanClips { expert, clip, out, per_clip, seconds, seed } => {
+            let file = if expert.is_dir() { expert.join(RUN_POLICY) } else { expert };
+            let ck = Checkpoint::read(&file)?;
+            let sources = load_clips(humanoid, &clip)?;
+            if !(seconds.is_finite() && seconds >= 3.0) {
+                anyhow::bail!("--seconds is {seconds}: a plan clip needs at least 3 s");
+            }
+            let setup = PlanClipSetup { per_clip, seconds, seed };
+            let clips = plan_clips(humanoid, &ck.policy()?, &ck.config()?, &sources, setup)?;
+            if clips.is_empty() {
+                anyhow::bail!(
+                    "no rollout of {} lasted the 4 s a plan clip needs (3 s, and the second before a failure): \
+                     is it an expert of these clips?",
+                    file.display()
+                );
+            }
+            std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+            for c in &clips {
+                c.save(&out.join(format!("{}.clip.safetensors", c.name)))?;
+            }
+            let wanted = per_clip * sources.len();
+            eprintln!(
+                "wrote {} clips of {wanted} rollouts in {} ({} failed within 4 s and are left out)",
+                clips.len(),
+                out.display(),
+                wanted - clips.len()
+            );
         }
         TrackCommand::Plot { run } => {
             let text = flowmimic_io::read_to_string(&run.join("log.csv"))?;

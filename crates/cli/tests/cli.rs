@@ -440,6 +440,11 @@ fn a_newcomers_mistakes_get_clear_answers() {
     refused(&["run", "--envs", "0"], &["0 environments", "1 to 4096"]);
     refused(&["run", "--envs", "100000"], &["100000 environments"]);
     refused(&["track", "train", "--iterations", "0"], &["at least 1"]);
+    let experts = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../pretrained/experts");
+    let (straight, ahead) = (experts.join("walk_straight"), experts.join("stand-ahead"));
+    let plans = ["track", "plan-clips", straight.to_str().unwrap(), "--clip", "nothing.clip.safetensors", "-o", "p"];
+    refused(&plans, &["nothing.clip.safetensors"]);
+    refused(&["run", "--executor", ahead.to_str().unwrap(), "--seconds", "0.2"], &["stand-ahead", "ahead"]);
     refused(&["run", "--acceleration", "-1", "--seconds", "0.2"], &["acceleration = -1", "0 or more"]);
     // Files of the wrong kind.
     std::fs::write(dir.join("picture.png"), b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR").unwrap();

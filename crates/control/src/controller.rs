@@ -3,6 +3,7 @@
 //! environments), steer it with the task's cost, execute its first action, repeat.
 
 use crate::adapt::{Adaptive, Recent};
+use crate::executor::Executor;
 use crate::history::{History, root_pose};
 use crate::rollout::{Rollout, RolloutInfo};
 use crate::task::{HeadingHold, SpeedRamp, Steer, Task};
@@ -16,6 +17,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -84,6 +86,10 @@ pub struct ControlConfig {
     /// The actions of the history an episode starts with ([`start_from_clip`]).
     #[serde(default)]
     pub start_actions: StartActions,
+    /// A tracking policy's run directory ([`Executor`]) that executes each plan in place of
+    /// its own action; `None`: the plan's action (the paper).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub executor: Option<PathBuf>,
     /// Sleep so that steps happen at 30 Hz of wall-clock time.
     pub paced: bool,
     /// Seed of the controller's random stream: the sampler's noise and the kicks.
@@ -110,6 +116,7 @@ impl ControlConfig {
             inverse_dynamics: 0.0,
             acceleration: 0.0,
             start_actions: StartActions::PdTargets,
+            executor: None,
             paced: false,
             seed: 0,
             kick_every: 0.0,
@@ -220,6 +227,8 @@ pub struct Controller<'m> {
     /// Each environment's current plan.
     plans: Vec<Option<Plan>>,
     alive: Vec<bool>,
+    /// Executes the plans in place of their own actions, when the config names one.
+    executor: Option<Arc<Executor>>,
     rng: StdRng,
     step: usize,
 }
@@ -303,6 +312,7 @@ impl<'m> Controller<'m> {
             ramps: vec![SpeedRamp::default(); envs],
             plans: vec![None; envs],
             alive: vec![true; envs],
+            executor: config.executor.as_deref().map(Executor::load).transpose()?.map(Arc::new),
             rng: StdRng::seed_from_u64(config.seed),
             step: 0,
         };
@@ -335,6 +345,9 @@ impl<'m> Controller<'m> {
     /// Changes the sampler (NFE, scale, gradient, interval) from the next step on.
     pub fn set_config(&mut self, config: ControlConfig) -> Result<(), ControlError> {
         check_sampler(self.model, &config)?;
+        if config.executor != self.config.executor {
+            self.executor = config.executor.as_deref().map(Executor::load).transpose()?.map(Arc::new);
+        }
         self.config = config;
         Ok(())
     }
@@ -451,14 +464,29 @@ impl<'m> Controller<'m> {
         let t_physics = Instant::now();
         let mut actions: Vec<Option<Vec<f32>>> = vec![None; self.envs.len()];
         for &e in &alive {
-            let plan = self.plans[e].as_mut().expect("planned above");
+            let plan = self.plans[e].as_ref().expect("planned above");
             let at = traj.action(plan.used);
-            plan.used += 1;
             let a: Vec<f32> = plan.tau[at..at + NUM_DOFS].iter().map(|a| a.clamp(-1.0, 1.0)).collect();
             if let Some(j) = a.iter().position(|a| !a.is_finite()) {
                 return Err(ControlError::NonFinite { env: e, step: self.step, index: j });
             }
             actions[e] = Some(a);
+        }
+        if let (Some(executor), Some(&first)) = (&self.executor, alive.first()) {
+            let plans: Vec<_> = alive
+                .iter()
+                .map(|&e| {
+                    let plan = self.plans[e].as_ref().expect("planned above");
+                    (&self.envs[e], plan.tau.as_slice(), plan.used, plan.frame)
+                })
+                .collect();
+            let map = self.envs[first].humanoid().actions();
+            for (&e, a) in alive.iter().zip(executor.actions(map, traj, &plans)) {
+                actions[e] = Some(a);
+            }
+        }
+        for &e in &alive {
+            self.plans[e].as_mut().expect("planned above").used += 1;
         }
         let kick_due = self.config.kick_every > 0.0
             && self.step > 0

@@ -14,6 +14,7 @@
 pub mod adapt;
 pub mod controller;
 pub mod costs;
+pub mod executor;
 pub mod history;
 pub mod layout;
 pub mod obstacles;
@@ -24,6 +25,7 @@ pub mod task;
 pub use adapt::Adaptive;
 pub use controller::{ControlConfig, Controller, StartActions, StepOutcome, StepReport, run, start_from_clip};
 pub use costs::{Cost, Heading, Joystick, Pursuit, Reach, Sum};
+pub use executor::Executor;
 pub use history::History;
 pub use layout::Layout;
 pub use recommended::Recommended;

@@ -370,3 +370,30 @@ fn a_start_in_inverse_dynamics_reads_each_action_out_of_the_clips_frames() {
     let err = Controller::new(&shipped("fm-walk"), &h, &clip, 1, &config).err().expect("refused").to_string();
     assert!(err.contains("no inverse.safetensors") && err.contains("--start-actions pd-targets"), "{err}");
 }
+
+/// A tracking policy executes each plan in place of its own action: close to it, not it, and
+/// every environment still walking; one that observes the reference ahead is refused by name.
+#[test]
+fn an_executor_steers_each_action_around_the_plans() {
+    let h = Humanoid::new(SimConfig::default()).unwrap();
+    let model = shipped("fm-walks");
+    let clip = flowmimic_motion::straight_walk(&h).unwrap();
+    let experts = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../pretrained/experts"));
+    let config = ControlConfig { executor: Some(experts.join("executor-walks")), ..ControlConfig::new(2, 0.0, 1.0) };
+    let tasks = vec![Task::walk(); 2];
+    let mut controller = Controller::new(&model, &h, &clip, 2, &config).unwrap();
+    let mut gap = 0.0;
+    for k in 0..30 {
+        let outcome = controller.step(&tasks, k as f64 / 30.0).unwrap();
+        assert!(outcome.fell.is_empty(), "step {k}");
+        for (e, action) in outcome.actions.iter().enumerate() {
+            let (executed, planned) = (action.as_ref().unwrap(), &controller.plan(e).unwrap()[..NUM_DOFS]);
+            assert!(executed.iter().all(|a| (-1.0..=1.0).contains(a)));
+            gap += executed.iter().zip(planned).map(|(a, b)| (a - b).abs()).sum::<f32>() / (60.0 * NUM_DOFS as f32);
+        }
+    }
+    assert!(gap > 1e-3 && gap < 0.3, "mean |executed - planned| {gap}");
+    let ahead = ControlConfig { executor: Some(experts.join("stand-ahead")), ..config };
+    let err = Controller::new(&model, &h, &clip, 1, &ahead).err().unwrap().to_string();
+    assert!(err.contains("stand-ahead") && err.contains("ahead"), "{err}");
+}

@@ -27,6 +27,8 @@ pub struct Bench<'a> {
     pub name: &'a str,
     /// Where each protocol run writes its rollout (`None`: nowhere).
     pub rollouts: Option<&'a Path>,
+    /// The tracking policy's run that executes the plans (`None`: their own actions).
+    pub executor: Option<&'a Path>,
 }
 
 /// Sampler settings of one evaluated point: the NFE and guidance scale a sweep varies, and how
@@ -120,6 +122,7 @@ impl Bench<'_> {
         let config = ControlConfig {
             kick_every: if kicks { 1.0 } else { 0.0 },
             kick_max: if kicks { 0.5 } else { 0.0 },
+            executor: self.executor.map(Path::to_path_buf),
             ..point.control(seconds)
         };
         let r = controller::run(self.model, self.humanoid, self.clip, tasks, &config, self.name, on_step)?;

@@ -34,6 +34,9 @@ pub struct EvalModel {
     /// Its point for the protocol's task (a command line's flags over its `recommended.toml`):
     /// a sweep varies the scale or the NFE and keeps the rest.
     pub sampler: Point,
+    /// The tracking policy that executes its plans, if any ([`flowmimic_control::Executor`]),
+    /// and the SHA-256 of its policy file, part of every point's key.
+    pub executor: Option<(PathBuf, String)>,
 }
 
 impl EvalModel {
@@ -49,12 +52,22 @@ impl EvalModel {
             Some(_) => Some(format!("{:x}", Sha256::digest(flowmimic_io::read(&inverse)?))),
             None => None,
         };
-        Ok(Self { label: label.to_string(), dir: dir.into(), model, content, inverse_content, sampler })
+        Ok(Self { label: label.to_string(), dir: dir.into(), model, content, inverse_content, sampler, executor: None })
+    }
+
+    /// This model with its plans executed by the tracking policy of run directory `run`.
+    pub fn with_executor(mut self, run: &Path) -> Result<Self> {
+        flowmimic_control::Executor::load(run)?;
+        let file = if run.is_dir() { run.join(flowmimic_control::executor::POLICY_FILE) } else { run.into() };
+        let content = format!("{:x}", Sha256::digest(flowmimic_io::read(&file)?));
+        self.executor = Some((run.into(), content));
+        Ok(self)
     }
 
     /// The protocols' bench for this model; each run's rollout is written in `rollouts`, if given.
     pub fn bench<'a>(&'a self, humanoid: &'a Arc<Humanoid>, clip: &'a Clip, rollouts: Option<&'a Path>) -> Bench<'a> {
-        Bench { model: &self.model, humanoid, clip, name: &self.label, rollouts }
+        let executor = self.executor.as_ref().map(|(run, _)| run.as_path());
+        Bench { model: &self.model, humanoid, clip, name: &self.label, rollouts, executor }
     }
 }
 
@@ -134,6 +147,9 @@ impl Store {
         }
         if point.approach {
             steps += "\0approach";
+        }
+        if let Some((_, executor)) = &m.executor {
+            steps += &format!("\0executor {executor}");
         }
         let inputs = format!("{:x}", Sha256::digest(format!("{}\0{settings}{steps}", m.content)));
         let model = format!("{}@{}", m.label, &inputs[..12]);

@@ -101,6 +101,14 @@ impl Mlp {
         first.inputs = i + extra;
     }
 
+    /// Zeroes the last layer: the outputs are 0 whatever the inputs, until training moves it
+    /// (the hidden layers keep what they learned).
+    pub fn zero_outputs(&mut self) {
+        let last = self.layers.last_mut().expect("layers");
+        last.weight.fill(0.0);
+        last.bias.fill(0.0);
+    }
+
     pub fn outputs(&self) -> usize {
         self.layers.last().expect("layers").outputs
     }

@@ -239,6 +239,46 @@ pub enum Ending {
     Diverged,
 }
 
+/// The reference's next frame as the policy observes it, all in the world: a clip's frame, or
+/// one a caller builds from elsewhere (a plan's next state; docs/guidance.md, "A tracking
+/// policy that executes the plan").
+pub struct NextFrame<'a> {
+    pub hinges: &'a [f64],
+    /// rad/s.
+    pub hinge_velocities: &'a [f64],
+    pub pelvis_pos: DVec3,
+    pub pelvis_rot: DQuat,
+    pub pelvis_vel: DVec3,
+}
+
+/// Writes the observation of `env` tracking `next` (unnormalised, [`OBS_DIM`] wide).
+pub fn observe(env: &Env, next: &NextFrame, out: &mut [f32]) {
+    assert_eq!(out.len(), OBS_DIM, "observation width");
+    let (q, v) = (env.qpos(), env.qvel());
+    let k = env.bodies();
+    let frame = k.frame();
+    let root = k.rot[body::PELVIS];
+    let mut at = 0;
+    let mut put = |xs: &[f64], scale: f64| {
+        for &x in xs {
+            out[at] = (x * scale) as f32;
+            at += 1;
+        }
+    };
+    put(&[q[2]], 1.0);
+    put(&rotvec(frame.rotation(root)).to_array(), 1.0);
+    put(&frame.vector(k.lin_vel[body::PELVIS]).to_array(), 1.0);
+    put(&v[3..6], 0.25);
+    put(&q[7..], 1.0);
+    put(&v[6..], 0.1);
+    put(next.hinges, 1.0);
+    put(next.hinge_velocities, 0.1);
+    put(&frame.point(next.pelvis_pos).to_array(), 1.0);
+    put(&rotvec(root.conjugate() * next.pelvis_rot).to_array(), 1.0);
+    put(&frame.vector(next.pelvis_vel).to_array(), 1.0);
+    debug_assert_eq!(at, OBS_DIM);
+}
+
 /// One humanoid tracking the shared reference.
 pub struct Tracker {
     env: Env,
@@ -333,40 +373,35 @@ impl Tracker {
     pub fn observe(&self, reference: &Reference, out: &mut [f32]) {
         let width = out.len();
         assert!(width == OBS_DIM || width == obs_dim(true), "observation width {width}");
-        let (q, v) = (self.env.qpos(), self.env.qvel());
-        let k = self.env.bodies();
-        let frame = k.frame();
-        let root = k.rot[body::PELVIS];
-        let mut at = 0;
-        let mut put = |xs: &[f64], scale: f64| {
-            for &x in xs {
-                out[at] = (x * scale) as f32;
-                at += 1;
-            }
-        };
-        put(&[q[2]], 1.0);
-        put(&rotvec(frame.rotation(root)).to_array(), 1.0);
-        put(&frame.vector(k.lin_vel[body::PELVIS]).to_array(), 1.0);
-        put(&v[3..6], 0.25);
-        put(&q[7..], 1.0);
-        put(&v[6..], 0.1);
         let t = (self.frame + 1).min(reference.len() - 1);
         let r = &reference.clip.bodies[t];
-        put(reference.hinges(t), 1.0);
-        put(&reference.clip.qvel[t][6..], 0.1);
-        put(&frame.point(r.pos[body::PELVIS]).to_array(), 1.0);
-        put(&rotvec(root.conjugate() * r.rot[body::PELVIS]).to_array(), 1.0);
-        put(&frame.vector(r.lin_vel[body::PELVIS]).to_array(), 1.0);
+        let next = NextFrame {
+            hinges: reference.hinges(t),
+            hinge_velocities: &reference.clip.qvel[t][6..],
+            pelvis_pos: r.pos[body::PELVIS],
+            pelvis_rot: r.rot[body::PELVIS],
+            pelvis_vel: r.lin_vel[body::PELVIS],
+        };
+        observe(&self.env, &next, &mut out[..OBS_DIM]);
         if width > OBS_DIM {
+            let k = self.env.bodies();
+            let (frame, root) = (k.frame(), k.rot[body::PELVIS]);
+            let mut at = OBS_DIM;
+            let mut put = |xs: &[f64]| {
+                for &x in xs {
+                    out[at] = x as f32;
+                    at += 1;
+                }
+            };
             for ahead in AHEAD_FRAMES {
                 let t = (self.frame + ahead).min(reference.len() - 1);
                 let r = &reference.clip.bodies[t];
-                put(reference.hinges(t), 1.0);
-                put(&frame.point(r.pos[body::PELVIS]).to_array(), 1.0);
-                put(&rotvec(root.conjugate() * r.rot[body::PELVIS]).to_array(), 1.0);
+                put(reference.hinges(t));
+                put(&frame.point(r.pos[body::PELVIS]).to_array());
+                put(&rotvec(root.conjugate() * r.rot[body::PELVIS]).to_array());
             }
+            debug_assert_eq!(at, width);
         }
-        debug_assert_eq!(at, width);
     }
 
     /// The environment action for policy output `u`.

@@ -98,6 +98,13 @@ pub struct TrackConfig {
     /// one that does not gets the new inputs with zero weights, so it acts as before until PPO
     /// moves them. A trained policy's width says which it is wherever it is loaded.
     pub observe_ahead: bool,
+    /// A policy started (`--init`) on another kind of reference (the plans' clips of `track
+    /// plan-clips`) starts from a zero residual: its output layer zeroed, so that it first
+    /// executes the reference's hinges as they are; its log-std raised to at least
+    /// `init_log_std` and the configured learning rate, so that it explores again; and its
+    /// observation statistics weighted as [`FRESH_OBSERVATIONS`] steps, so that they move to
+    /// the new references within tens of iterations instead of never.
+    pub fresh_output: bool,
     /// Seed of the policy's initial weights, the episodes' draws and the action noise.
     pub seed: u64,
     /// Iterations between checkpoints.
@@ -142,6 +149,7 @@ impl Default for TrackConfig {
             clip_failure_share: 0.0,
             first_frame_share: 0.0,
             observe_ahead: false,
+            fresh_output: false,
             seed: 0,
             checkpoint_every: 25,
             reward: RewardConfig::default(),
@@ -676,9 +684,17 @@ impl Trainer {
                 saved.hidden, cfg.hidden
             )));
         }
+        let fresh = cfg.fresh_output.then_some((cfg.init_log_std as f32, cfg.learning_rate as f32));
         let mut trainer = Self::new(humanoid, clips, cfg)?;
         ck.load_policy(&mut trainer.policy)?;
         trainer.opt.lr = ck.number("learning_rate")? as f32;
+        if let Some((log_std, lr)) = fresh {
+            let policy = &mut trainer.policy;
+            policy.actor.zero_outputs();
+            policy.log_std.iter_mut().for_each(|s| *s = s.max(log_std));
+            policy.normaliser.count = policy.normaliser.count.min(FRESH_OBSERVATIONS);
+            trainer.opt.lr = lr;
+        }
         Ok(trainer)
     }
 
@@ -764,6 +780,10 @@ fn draw_weighted(weights: &[f64], rng: &mut impl Rng) -> Option<usize> {
     }
     Some(weights.len() - 1)
 }
+
+/// The steps a policy's observation statistics count as when it starts from a zero residual
+/// ([`TrackConfig::fresh_output`]): about 35 iterations of the corpus preset.
+pub const FRESH_OBSERVATIONS: f64 = 2e5;
 
 pub const POLICY_FORMAT: &str = "flowmimic-policy/1";
 

@@ -241,3 +241,53 @@ fn bench_reports_ppo_beside_the_physics_of_the_same_iterations() {
     // Physics is part of each iteration, never more than all of it.
     assert!(report.physics_share > 0.0 && report.physics_share <= 1.0, "{}", report.physics_share);
 }
+
+/// A warm start with `fresh_output` acts with a zero residual (the reference's hinges as they
+/// are) whatever it observes, explores at `init_log_std` at least, and lets its observation
+/// statistics move.
+#[test]
+fn a_fresh_output_starts_at_a_zero_residual() {
+    let (h, clip) = setup();
+    let dir = std::env::temp_dir().join(format!("flowmimic-track-fresh-{}", std::process::id()));
+    let path = dir.join("policy.safetensors");
+    let mut start = Trainer::new(&h, vec![clip.clone()], TrackConfig { init_log_std: -3.0, ..tiny() }).unwrap();
+    start.iterate().unwrap();
+    start.save(&path).unwrap();
+    let fresh = TrackConfig { fresh_output: true, init_log_std: -1.0, learning_rate: 3e-4, ..tiny() };
+    let warm = Trainer::warm_start(&h, vec![clip], fresh, &path).unwrap();
+    let obs: Vec<f32> = (0..2 * OBS_DIM).map(|i| (i % 11) as f32 - 5.0).collect();
+    assert!(start.policy.act(&obs, 2).iter().any(|&u| u != 0.0));
+    assert!(warm.policy.act(&obs, 2).iter().all(|&u| u == 0.0));
+    assert!(warm.policy.log_std.iter().all(|&s| s >= -1.0));
+    assert!(warm.policy.normaliser.count <= flowmimic_track::train::FRESH_OBSERVATIONS);
+    assert_eq!(warm.policy.normaliser.mean, start.policy.normaliser.mean);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Plan clips: each rollout of the expert from a random frame, 3 s to the length asked, its
+/// first frame a state of the simulator (velocities included); the same seed the same clips.
+#[test]
+fn plan_clips_hold_the_experts_targets_after_its_own_first_state() {
+    use flowmimic_track::plan::{PlanClipSetup, plan_clips};
+    let h = Humanoid::new(SimConfig::default()).unwrap();
+    // The shipped expert of the generated straight walk.
+    let file = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../pretrained/experts/walk_straight/policy.safetensors");
+    let ck = Checkpoint::read(&file).unwrap();
+    let (cfg, policy) = (ck.config().unwrap(), ck.policy().unwrap());
+    let clip = flowmimic_motion::straight_walk(&h).unwrap();
+    let setup = PlanClipSetup { per_clip: 3, seconds: 4.0, seed: 7 };
+    let clips = plan_clips(&h, &policy, &cfg, std::slice::from_ref(&clip), setup).unwrap();
+    assert!(!clips.is_empty());
+    for c in &clips {
+        assert!(c.name.starts_with(&format!("{}_plan700", clip.name)), "{}", c.name);
+        assert!((90..=121).contains(&c.len()), "{} frames", c.len());
+        // Frame 0 is a state of the simulator: its body kinematics are its qpos and qvel's.
+        let mut env = h.env();
+        env.reset(&c.qpos[0], &c.qvel[0]).unwrap();
+        assert_eq!(env.bodies().pos, c.bodies[0].pos);
+        assert!(c.qpos.iter().flatten().all(|x| x.is_finite()));
+    }
+    let again = plan_clips(&h, &policy, &cfg, std::slice::from_ref(&clip), setup).unwrap();
+    assert_eq!(again.iter().map(|c| &c.qpos).collect::<Vec<_>>(), clips.iter().map(|c| &c.qpos).collect::<Vec<_>>());
+}

@@ -1,0 +1,86 @@
+//! Executing a plan with a tracking policy instead of the plan's own action: the policy
+//! observes the plan's next state (its root) with the plan's action as the pose to reach, and
+//! adds its residual, so that a body pushed off the plan is steered back to it.
+//!
+//! A plan's action is a PD target, not a pose: the policy must be trained on references whose
+//! hinges are PD targets (`flowmimic track plan-clips`, [`flowmimic_track::plan`]), or it fails
+//! them within 2 s. The plan's next state is relative to the current one, so the policy sees
+//! one step of the plan at a time: a bias of its own is not corrected by the next plan, which
+//! starts where the body is (docs/guidance.md, "A tracking policy that executes the plan").
+
+use crate::ControlError;
+use crate::layout::Layout;
+use flowmimic_geom::{CharFrame, DVec3, from_rotvec};
+use flowmimic_sim::{ActionMap, CONTROL_HZ, Env, NUM_DOFS};
+use flowmimic_track::ppo::Policy;
+use flowmimic_track::task::{NextFrame, OBS_DIM, observe};
+use flowmimic_track::train::Checkpoint;
+use std::path::Path;
+
+/// The policy file in a tracking run's directory.
+pub const POLICY_FILE: &str = "policy.safetensors";
+
+/// A tracking policy that executes plans.
+pub struct Executor {
+    policy: Policy,
+    action_scale: f64,
+}
+
+impl Executor {
+    /// The policy of a tracking run's `policy.safetensors` (a run directory or the file).
+    pub fn load(path: &Path) -> Result<Self, ControlError> {
+        let file = if path.is_dir() { path.join(POLICY_FILE) } else { path.to_path_buf() };
+        let bad = |e: flowmimic_track::TrackError| ControlError::Start(format!("executor: {e}"));
+        let ck = Checkpoint::read(&file).map_err(bad)?;
+        let (cfg, policy) = (ck.config().map_err(bad)?, ck.policy().map_err(bad)?);
+        if policy.obs_dim() != OBS_DIM {
+            return Err(ControlError::Start(format!(
+                "executor {}: the policy observes the reference ahead, which a plan does not reach",
+                file.display()
+            )));
+        }
+        Ok(Self { policy, action_scale: cfg.action_scale })
+    }
+
+    /// The normalised actions that `envs` execute for their plans, each at its step `used`
+    /// (the plan's action `used` and state `used + 1`, in the plan's `frame`).
+    pub fn actions(&self, map: &ActionMap, traj: Layout, envs: &[(&Env, &[f32], usize, CharFrame)]) -> Vec<Vec<f32>> {
+        let targets = |tau: &[f32], k: usize| -> Vec<f64> {
+            let at = traj.action(k);
+            (0..NUM_DOFS).map(|i| map.target(i, f64::from(tau[at + i].clamp(-1.0, 1.0)))).collect()
+        };
+        let mut raw = vec![0f32; envs.len() * OBS_DIM];
+        let mut hinges = Vec::with_capacity(envs.len());
+        for ((env, tau, used, frame), out) in envs.iter().zip(raw.chunks_exact_mut(OBS_DIM)) {
+            let now = targets(tau, *used);
+            let k = (*used + 1).min(traj.horizon);
+            let velocities: Vec<f64> = if *used < traj.horizon {
+                targets(tau, k).iter().zip(&now).map(|(b, a)| (b - a) * CONTROL_HZ).collect()
+            } else {
+                vec![0.0; NUM_DOFS]
+            };
+            let v3 = |at: usize| DVec3::new(f64::from(tau[at]), f64::from(tau[at + 1]), f64::from(tau[at + 2]));
+            let p = v3(traj.root_pos(k));
+            let mut pelvis_pos = frame.point_to_world(DVec3::new(p.x, p.y, 0.0));
+            pelvis_pos.z = p.z;
+            let next = NextFrame {
+                hinges: &now,
+                hinge_velocities: &velocities,
+                pelvis_pos,
+                pelvis_rot: flowmimic_geom::yaw_quat(frame.yaw) * from_rotvec(v3(traj.root_rot(k))),
+                pelvis_vel: frame.vector_to_world(v3(traj.root_vel(k))),
+            };
+            observe(env, &next, out);
+            hinges.push(now);
+        }
+        let u = self.policy.act(&raw, envs.len());
+        hinges
+            .iter()
+            .zip(u.chunks_exact(NUM_DOFS))
+            .map(|(q, u)| {
+                let q: Vec<f64> = q.iter().zip(u).map(|(q, u)| q + self.action_scale * f64::from(*u)).collect();
+                map.action_for(&q)
+            })
+            .collect()
+    }
+}
