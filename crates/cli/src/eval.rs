@@ -40,7 +40,8 @@ pub struct Common {
     #[arg(long, default_value_t = 1)]
     execute: usize,
     /// Execute each plan with this tracking policy (a `track train` run on `track plan-clips`'
-    /// clips) in place of the plan's own action, for every model.
+    /// clips) in place of the plan's own action, for every model (pretrained/experts/executor-walks
+    /// executes fm-walks' plans).
     #[arg(long, value_name = "RUN")]
     executor: Option<PathBuf>,
     /// Start trials from this clip's frames (default: the generated straight walk).
@@ -261,6 +262,7 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
             let mut m = lib(EvalModel::new(&label, &dir, model, sampler))?;
             if let Some(executor) = &common.executor {
                 m = lib(m.with_executor(executor))?;
+                eprintln!("{label}: plans executed by {}", executor.display());
             }
             Ok(m)
         })

@@ -68,7 +68,8 @@ pub struct RunArgs {
     pub execute: usize,
     /// Execute each plan with this tracking policy (a `track train` run on `track plan-clips`'
     /// clips) in place of the plan's own action: it steers the body back to the plan's next
-    /// state after a push.
+    /// state after a push. An executor suits the plans of the model whose data its clips'
+    /// expert made: pretrained/experts/executor-walks executes fm-walks' plans.
     #[arg(long, value_name = "RUN")]
     pub executor: Option<PathBuf>,
     /// Environments run at once (one batched model call per step).
@@ -520,6 +521,9 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     };
     let label =
         if model.config.task_labels { format!(", task label {}", setting_name(&task.label())) } else { String::new() };
+    if let Some(run) = &control.executor {
+        flowmimic_control::Executor::load(run)?;
+    }
     let executed =
         control.executor.as_ref().map(|r| format!(", plans executed by {}", r.display())).unwrap_or_default();
     eprintln!(

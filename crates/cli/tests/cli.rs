@@ -445,6 +445,8 @@ fn a_newcomers_mistakes_get_clear_answers() {
     let plans = ["track", "plan-clips", straight.to_str().unwrap(), "--clip", "nothing.clip.safetensors", "-o", "p"];
     refused(&plans, &["nothing.clip.safetensors"]);
     refused(&["run", "--executor", ahead.to_str().unwrap(), "--seconds", "0.2"], &["stand-ahead", "ahead"]);
+    let model = experts.join("../models/fm");
+    refused(&["eval", "survival", "--trials", "1", "--executor", model.to_str().unwrap()], &["not a tracking run"]);
     refused(&["run", "--acceleration", "-1", "--seconds", "0.2"], &["acceleration = -1", "0 or more"]);
     // Files of the wrong kind.
     std::fs::write(dir.join("picture.png"), b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR").unwrap();

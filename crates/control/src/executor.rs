@@ -30,6 +30,13 @@ impl Executor {
     /// The policy of a tracking run's `policy.safetensors` (a run directory or the file).
     pub fn load(path: &Path) -> Result<Self, ControlError> {
         let file = if path.is_dir() { path.join(POLICY_FILE) } else { path.to_path_buf() };
+        if path.is_dir() && !file.exists() {
+            return Err(ControlError::Start(format!(
+                "executor {}: not a tracking run (no {POLICY_FILE}); an executor is a `flowmimic track train` run on \
+                 `track plan-clips`' clips, such as pretrained/experts/executor-walks",
+                path.display()
+            )));
+        }
         let bad = |e: flowmimic_track::TrackError| ControlError::Start(format!("executor: {e}"));
         let ck = Checkpoint::read(&file).map_err(bad)?;
         let (cfg, policy) = (ck.config().map_err(bad)?, ck.policy().map_err(bad)?);

@@ -340,7 +340,7 @@ fn described(m: &EvalModel, summaries: &[Summary]) -> String {
         c.heads,
         nfe.join(", "),
         m.sampler.describe()
-    )
+    ) + &m.executor.as_ref().map(|(run, _)| format!(", plans executed by `{}`", run.display())).unwrap_or_default()
 }
 
 /// UTC date and time from the system clock (no extra dependency for one timestamp).
