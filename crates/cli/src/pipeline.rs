@@ -303,7 +303,7 @@ impl Stages<'_> {
             .as_deref()
             .filter(|_| p.init_iterations > 0)
             .map(crate::paths::resolve)
-            .map(|run| if run.is_dir() { run.join(crate::track::RUN_POLICY) } else { run });
+            .map(|run| flowmimic_track::train::policy_file(&run));
         let mut track = self.config.track.clone();
         let mut parts = vec![clips_key.to_string(), json(&track)];
         if let Some(init) = &init {

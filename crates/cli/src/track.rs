@@ -7,7 +7,7 @@ use flowmimic_motion::Clip;
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::{CONTROL_HZ, Humanoid};
 use flowmimic_track::plan::{PlanClipSetup, plan_clips};
-use flowmimic_track::train::{Checkpoint, ClipLog, EvalReport, IterationLog};
+use flowmimic_track::train::{Checkpoint, ClipLog, EvalReport, IterationLog, policy_file};
 use flowmimic_track::{EvalSetup, TrackConfig, Trainer, evaluate};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -112,7 +112,7 @@ pub(crate) fn run_clips(humanoid: &Arc<Humanoid>, run: &Path) -> Result<Vec<Clip
     Ok(clips)
 }
 /// The policy of a run.
-pub(crate) const RUN_POLICY: &str = "policy.safetensors";
+pub(crate) const RUN_POLICY: &str = flowmimic_track::train::POLICY_FILE;
 
 /// Learning curves from the CSV rows: reward, episode length and tracking error.
 fn plot_curves(out: &Path, rows: &[String]) -> Result<()> {
@@ -157,13 +157,13 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
             }
             let start = match (resume, init) {
                 (true, _) => Start::Resume,
-                (false, Some(run)) => Start::From(if run.is_dir() { run.join(RUN_POLICY) } else { run }),
+                (false, Some(run)) => Start::From(policy_file(&run)),
                 (false, None) => Start::Fresh,
             };
             train(humanoid, clips, &out, &cfg, start)?;
         }
         TrackCommand::PlanClips { expert, clip, out, per_clip, seconds, seed } => {
-            let file = if expert.is_dir() { expert.join(RUN_POLICY) } else { expert };
+            let file = policy_file(&expert);
             let ck = Checkpoint::read(&file)?;
             let sources = load_clips(humanoid, &clip)?;
             if !(seconds.is_finite() && seconds >= 3.0) {

@@ -14,11 +14,8 @@ use flowmimic_geom::{CharFrame, DVec3, from_rotvec};
 use flowmimic_sim::{ActionMap, CONTROL_HZ, Env, NUM_DOFS};
 use flowmimic_track::ppo::Policy;
 use flowmimic_track::task::{NextFrame, OBS_DIM, observe};
-use flowmimic_track::train::Checkpoint;
+use flowmimic_track::train::{Checkpoint, POLICY_FILE, policy_file};
 use std::path::Path;
-
-/// The policy file in a tracking run's directory.
-pub const POLICY_FILE: &str = "policy.safetensors";
 
 /// A tracking policy that executes plans.
 pub struct Executor {
@@ -29,7 +26,7 @@ pub struct Executor {
 impl Executor {
     /// The policy of a tracking run's `policy.safetensors` (a run directory or the file).
     pub fn load(path: &Path) -> Result<Self, ControlError> {
-        let file = if path.is_dir() { path.join(POLICY_FILE) } else { path.to_path_buf() };
+        let file = policy_file(path);
         if path.is_dir() && !file.exists() {
             return Err(ControlError::Start(format!(
                 "executor {}: not a tracking run (no {POLICY_FILE}); an executor is a `flowmimic track train` run on \
@@ -77,7 +74,7 @@ impl Executor {
                 pelvis_rot: flowmimic_geom::yaw_quat(frame.yaw) * from_rotvec(v3(traj.root_rot(k))),
                 pelvis_vel: frame.vector_to_world(v3(traj.root_vel(k))),
             };
-            observe(env, &next, out);
+            observe(env, &env.bodies(), &next, out);
             hinges.push(now);
         }
         let u = self.policy.act(&raw, envs.len());

@@ -58,7 +58,7 @@ impl EvalModel {
     /// This model with its plans executed by the tracking policy of run directory `run`.
     pub fn with_executor(mut self, run: &Path) -> Result<Self> {
         flowmimic_control::Executor::load(run)?;
-        let file = if run.is_dir() { run.join(flowmimic_control::executor::POLICY_FILE) } else { run.into() };
+        let file = flowmimic_track::train::policy_file(run);
         let content = format!("{:x}", Sha256::digest(flowmimic_io::read(&file)?));
         self.executor = Some((run.into(), content));
         Ok(self)

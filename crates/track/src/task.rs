@@ -251,11 +251,11 @@ pub struct NextFrame<'a> {
     pub pelvis_vel: DVec3,
 }
 
-/// Writes the observation of `env` tracking `next` (unnormalised, [`OBS_DIM`] wide).
-pub fn observe(env: &Env, next: &NextFrame, out: &mut [f32]) {
+/// Writes the observation of `env`, whose body kinematics are `k`, tracking `next`
+/// (unnormalised, [`OBS_DIM`] wide).
+pub fn observe(env: &Env, k: &BodyKinematics, next: &NextFrame, out: &mut [f32]) {
     assert_eq!(out.len(), OBS_DIM, "observation width");
     let (q, v) = (env.qpos(), env.qvel());
-    let k = env.bodies();
     let frame = k.frame();
     let root = k.rot[body::PELVIS];
     let mut at = 0;
@@ -373,6 +373,7 @@ impl Tracker {
     pub fn observe(&self, reference: &Reference, out: &mut [f32]) {
         let width = out.len();
         assert!(width == OBS_DIM || width == obs_dim(true), "observation width {width}");
+        let k = self.env.bodies();
         let t = (self.frame + 1).min(reference.len() - 1);
         let r = &reference.clip.bodies[t];
         let next = NextFrame {
@@ -382,9 +383,8 @@ impl Tracker {
             pelvis_rot: r.rot[body::PELVIS],
             pelvis_vel: r.lin_vel[body::PELVIS],
         };
-        observe(&self.env, &next, &mut out[..OBS_DIM]);
+        observe(&self.env, &k, &next, &mut out[..OBS_DIM]);
         if width > OBS_DIM {
-            let k = self.env.bodies();
             let (frame, root) = (k.frame(), k.rot[body::PELVIS]);
             let mut at = OBS_DIM;
             let mut put = |xs: &[f64]| {

@@ -787,6 +787,14 @@ pub const FRESH_OBSERVATIONS: f64 = 2e5;
 
 pub const POLICY_FORMAT: &str = "flowmimic-policy/1";
 
+/// The policy file of a run directory.
+pub const POLICY_FILE: &str = "policy.safetensors";
+
+/// The policy file that `run` names: a run directory's, or the file itself.
+pub fn policy_file(run: &Path) -> std::path::PathBuf {
+    if run.is_dir() { run.join(POLICY_FILE) } else { run.to_path_buf() }
+}
+
 /// The control step, seconds: the weight of each step's reward in the return.
 const REWARD_DT: f32 = (1.0 / CONTROL_HZ) as f32;
 
