@@ -44,6 +44,9 @@ pub struct Common {
     /// executes fm-walks' plans).
     #[arg(long, value_name = "RUN")]
     executor: Option<PathBuf>,
+    /// With --executor: the share of its residual added to the plan's action, 0 to 1.
+    #[arg(long, default_value_t = flowmimic_control::executor::DEFAULT_RESIDUAL, value_name = "SHARE")]
+    executor_residual: f32,
     /// Start trials from this clip's frames (default: the generated straight walk).
     #[arg(long)]
     clip: Option<PathBuf>,
@@ -64,6 +67,7 @@ impl Common {
             save_rollouts: false,
             execute: 1,
             executor: None,
+            executor_residual: flowmimic_control::executor::DEFAULT_RESIDUAL,
             clip: None,
             guidance,
         }
@@ -261,8 +265,8 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
             crate::run::check_sampler(&model, &dir, &sampler.control(0.0))?;
             let mut m = lib(EvalModel::new(&label, &dir, model, sampler))?;
             if let Some(executor) = &common.executor {
-                m = lib(m.with_executor(executor))?;
-                eprintln!("{label}: plans executed by {}", executor.display());
+                m = lib(m.with_executor(executor, common.executor_residual))?;
+                eprintln!("{label}: {}", crate::run::executed_by(executor, common.executor_residual));
             }
             Ok(m)
         })
@@ -348,6 +352,10 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
     if !swept.is_empty() {
         let w: Vec<String> = swept.iter().map(ToString::to_string).collect();
         eprintln!("every model at w {} (flag), not the w above", w.join(", "));
+    }
+    if let EvalCommand::Survival { nfe, .. } | EvalCommand::Latency { nfe, .. } = &cmd {
+        let n: Vec<String> = nfe.iter().map(ToString::to_string).collect();
+        eprintln!("every model at NFE {} (--nfe), not the NFE above", n.join(", "));
     }
     let clip = match &cmd {
         EvalCommand::Reach { standing: true, .. } if common.clip.is_none() => flowmimic_motion::standing(humanoid)?,

@@ -72,6 +72,10 @@ pub struct RunArgs {
     /// expert made: pretrained/experts/executor-walks executes fm-walks' plans.
     #[arg(long, value_name = "RUN")]
     pub executor: Option<PathBuf>,
+    /// With --executor: the share of its residual added to the plan's action, 0 to 1 (half of
+    /// executor-walks' residual held kicks as well as all of it, and steered better).
+    #[arg(long, default_value_t = flowmimic_control::executor::DEFAULT_RESIDUAL, value_name = "SHARE")]
+    pub executor_residual: f32,
     /// Environments run at once (one batched model call per step).
     #[arg(long, default_value_t = 1, value_parser = crate::args::envs)]
     pub envs: usize,
@@ -445,6 +449,7 @@ impl RunArgs {
         ControlConfig {
             execute: self.execute,
             executor: self.executor.clone(),
+            executor_residual: self.executor_residual,
             paced: self.paced,
             seed: self.seed,
             ..plain
@@ -524,8 +529,11 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     if let Some(run) = &control.executor {
         flowmimic_control::Executor::load(run)?;
     }
-    let executed =
-        control.executor.as_ref().map(|r| format!(", plans executed by {}", r.display())).unwrap_or_default();
+    let executed = control
+        .executor
+        .as_ref()
+        .map(|r| format!(", {}", executed_by(r, control.executor_residual)))
+        .unwrap_or_default();
     eprintln!(
         "{} model (H {}{label}), NFE {}, {guidance}{executed}, task {name}, {} env(s), {} s",
         model.objective.label(),
@@ -571,10 +579,15 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     Ok(())
 }
 
+/// "plans executed by RUN (residual x SHARE)", as `run` and `eval` name an executor.
+pub(crate) fn executed_by(run: &Path, residual: f32) -> String {
+    format!("plans executed by {} (residual x {residual})", run.display())
+}
+
 /// Per joystick segment, the speeds asked and achieved (the range over environments) and how
 /// many environments followed it; the hand's closest approach; the way to the goal; falls.
 pub(crate) fn print_outcome(o: &Outcome) {
-    if !o.segments.is_empty() {
+    if !o.segments.is_empty() || o.unreached_segments > 0 {
         println!(
             "joystick, after {SEGMENT_SETTLE} s into each segment (followed: within {FOLLOWED_SPEED} m/s and \
              {FOLLOWED_YAW_RATE} rad/s, no fall)"
@@ -613,6 +626,11 @@ pub(crate) fn print_outcome(o: &Outcome) {
                 let row = format!("  {:<22} {:<17} {:<17} {:<17}", "  planned", range(p, 0), range(p, 1), range(p, 2));
                 println!("{}", row.trim_end());
             }
+        }
+        if o.unreached_segments > 0 {
+            let n = o.unreached_segments;
+            let which = if n == 1 { "its last segment".to_string() } else { format!("its last {n} segments") };
+            println!("  (the run ended before {which} began to count: --seconds sets its length)");
         }
     }
     if !o.reach.is_empty() {

@@ -486,9 +486,11 @@ fn a_newcomers_mistakes_get_clear_answers() {
     const SIGPIPE: i32 = 13;
     assert_eq!(std::os::unix::process::ExitStatusExt::signal(&out.status), Some(SIGPIPE), "{stderr}");
     // The outcome of the task, after a run and from a saved rollout.
-    let run = ok(&dir, &["run", "--task", "joystick", "--seconds", "0.5", "-o", "j.rollout.safetensors"]);
+    let run = ok(&dir, &["run", "--task", "joystick", "--seconds", "1.2", "-o", "j.rollout.safetensors"]);
     let outcome = ok(&dir, &["eval", "outcome", "j.rollout.safetensors"]);
     assert!(run.contains("followed") && run.contains("+1.0, +0.0, +0.0"), "{run}");
+    // Segments the run never reached are said once, not printed as empty rows.
+    assert!(run.contains("ended before its last 3 segments") && !run.contains("-0.5, +0.0, +0.0"), "{run}");
     assert!(run.contains("the schedule is 12 s long") && outcome.contains("followed"), "{run}\n{outcome}");
     // The model's recommended settings where a flag is absent, each said with its source.
     assert!(run.contains("NFE 2 (model), w 50 (model), adaptive 1.5 (model)"), "{run}");

@@ -3,7 +3,7 @@
 //! environments), steer it with the task's cost, execute its first action, repeat.
 
 use crate::adapt::{Adaptive, Recent};
-use crate::executor::Executor;
+use crate::executor::{DEFAULT_RESIDUAL, Executor};
 use crate::history::{History, root_pose};
 use crate::rollout::{Rollout, RolloutInfo};
 use crate::task::{HeadingHold, SpeedRamp, Steer, Task};
@@ -90,6 +90,10 @@ pub struct ControlConfig {
     /// its own action; `None`: the plan's action (the paper).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub executor: Option<PathBuf>,
+    /// The share of the executor's residual that is added to the plan's action (1: all of it;
+    /// rollouts saved before the share existed executed all of it).
+    #[serde(default = "all_of_the_residual")]
+    pub executor_residual: f32,
     /// Sleep so that steps happen at 30 Hz of wall-clock time.
     pub paced: bool,
     /// Seed of the controller's random stream: the sampler's noise and the kicks.
@@ -98,6 +102,10 @@ pub struct ControlConfig {
     pub kick_every: f64,
     /// ... of a speed uniform in [0, kick_max] m/s in a uniform direction.
     pub kick_max: f64,
+}
+
+fn all_of_the_residual() -> f32 {
+    1.0
 }
 
 impl ControlConfig {
@@ -117,6 +125,7 @@ impl ControlConfig {
             acceleration: 0.0,
             start_actions: StartActions::PdTargets,
             executor: None,
+            executor_residual: DEFAULT_RESIDUAL,
             paced: false,
             seed: 0,
             kick_every: 0.0,
@@ -257,6 +266,10 @@ pub fn check_sampler(model: &TrajectoryModel, config: &ControlConfig) -> Result<
     if !(config.acceleration.is_finite() && config.acceleration >= 0.0) {
         let value = f64::from(config.acceleration);
         return Err(ControlError::BadCommand { what: "joystick acceleration (m/s^2, 0 for none)", value });
+    }
+    let residual = config.executor_residual;
+    if !(0.0..=1.0).contains(&residual) {
+        return Err(ControlError::BadCommand { what: "executor residual share (0 to 1)", value: f64::from(residual) });
     }
     let beta = config.inverse_dynamics;
     if !(0.0..=1.0).contains(&beta) {
@@ -481,7 +494,7 @@ impl<'m> Controller<'m> {
                 })
                 .collect();
             let map = self.envs[first].humanoid().actions();
-            for (&e, a) in alive.iter().zip(executor.actions(map, traj, &plans)) {
+            for (&e, a) in alive.iter().zip(executor.actions(map, traj, &plans, self.config.executor_residual)) {
                 actions[e] = Some(a);
             }
         }

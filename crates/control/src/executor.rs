@@ -17,6 +17,12 @@ use flowmimic_track::task::{NextFrame, OBS_DIM, observe};
 use flowmimic_track::train::{Checkpoint, POLICY_FILE, policy_file};
 use std::path::Path;
 
+/// The share of an executor's residual added to the plan's action when none is given: with
+/// `fm-walks`, half of the residual of either training seed's executor held kicks about as well
+/// as all of it and steered about as the plan's own actions do, where all of it steered worse
+/// (docs/guidance.md, "Half the executor's residual").
+pub const DEFAULT_RESIDUAL: f32 = 0.5;
+
 /// A tracking policy that executes plans.
 pub struct Executor {
     policy: Policy,
@@ -47,8 +53,16 @@ impl Executor {
     }
 
     /// The normalised actions that `envs` execute for their plans, each at its step `used`
-    /// (the plan's action `used` and state `used + 1`, in the plan's `frame`).
-    pub fn actions(&self, map: &ActionMap, traj: Layout, envs: &[(&Env, &[f32], usize, CharFrame)]) -> Vec<Vec<f32>> {
+    /// (the plan's action `used` and state `used + 1`, in the plan's `frame`): the plan's
+    /// action plus `residual` times the policy's residual.
+    pub fn actions(
+        &self,
+        map: &ActionMap,
+        traj: Layout,
+        envs: &[(&Env, &[f32], usize, CharFrame)],
+        residual: f32,
+    ) -> Vec<Vec<f32>> {
+        let scale = f64::from(residual) * self.action_scale;
         let targets = |tau: &[f32], k: usize| -> Vec<f64> {
             let at = traj.action(k);
             (0..NUM_DOFS).map(|i| map.target(i, f64::from(tau[at + i].clamp(-1.0, 1.0)))).collect()
@@ -82,7 +96,7 @@ impl Executor {
             .iter()
             .zip(u.chunks_exact(NUM_DOFS))
             .map(|(q, u)| {
-                let q: Vec<f64> = q.iter().zip(u).map(|(q, u)| q + self.action_scale * f64::from(*u)).collect();
+                let q: Vec<f64> = q.iter().zip(u).map(|(q, u)| q + scale * f64::from(*u)).collect();
                 map.action_for(&q)
             })
             .collect()

@@ -393,6 +393,15 @@ fn an_executor_steers_each_action_around_the_plans() {
         }
     }
     assert!(gap > 1e-3 && gap < 0.3, "mean |executed - planned| {gap}");
+    // None of the residual executes the plan's own action; more than all of it is refused.
+    let none = ControlConfig { executor_residual: 0.0, ..config.clone() };
+    let mut controller = Controller::new(&model, &h, &clip, 1, &none).unwrap();
+    let outcome = controller.step(&tasks[..1], 0.0).unwrap();
+    let (executed, planned) = (outcome.actions[0].as_ref().unwrap(), &controller.plan(0).unwrap()[..NUM_DOFS]);
+    assert!(executed.iter().zip(planned).all(|(a, b)| (a - b.clamp(-1.0, 1.0)).abs() < 1e-4));
+    let more = ControlConfig { executor_residual: 1.5, ..config.clone() };
+    let err = Controller::new(&model, &h, &clip, 1, &more).err().unwrap().to_string();
+    assert!(err.contains("residual"), "{err}");
     let ahead = ControlConfig { executor: Some(experts.join("stand-ahead")), ..config };
     let err = Controller::new(&model, &h, &clip, 1, &ahead).err().unwrap().to_string();
     assert!(err.contains("stand-ahead") && err.contains("ahead"), "{err}");

@@ -6,7 +6,8 @@
 //! or environment cannot hide behind an average.
 
 use crate::protocols::{
-    JoystickTrial, ReachTrial, WaypointTrial, joystick_trial, mean_motion, reach_trial, waypoint_trial, yaw_rates,
+    JoystickTrial, ReachTrial, SEGMENT_SETTLE, WaypointTrial, joystick_trial, mean_motion, reach_trial, waypoint_trial,
+    yaw_rates,
 };
 use flowmimic_control::Rollout;
 use flowmimic_sim::CONTROL_HZ;
@@ -52,8 +53,11 @@ pub struct Outcome {
     pub envs: usize,
     pub falls: Vec<Fall>,
     /// The first environment's joystick schedule, segment by segment, over every environment
-    /// given the same schedule (empty when there is none).
+    /// given the same schedule (empty when there is none), up to the last one the rollout
+    /// reaches past its settling time.
     pub segments: Vec<Segment>,
+    /// Segments of the schedule the rollout ended before reaching.
+    pub unreached_segments: usize,
     /// Per environment with a hand target, and with a waypoint.
     pub reach: Vec<ReachTrial>,
     pub waypoint: Vec<WaypointTrial>,
@@ -73,7 +77,16 @@ impl Outcome {
         let schedule = &r.info.tasks[0].joystick;
         let same: Vec<usize> = (0..r.envs).filter(|&e| &r.info.tasks[e].joystick == schedule).collect();
         let trials: Vec<JoystickTrial> = same.iter().map(|&e| joystick_trial(r, e)).collect();
-        let segments = schedule
+        let mut start = 0.0;
+        let reached = schedule
+            .iter()
+            .take_while(|s| {
+                let from = ((start + SEGMENT_SETTLE) * CONTROL_HZ).round() as usize;
+                start += s.seconds;
+                from < r.steps
+            })
+            .count();
+        let segments: Vec<Segment> = schedule[..reached]
             .iter()
             .enumerate()
             .map(|(i, s)| {
@@ -87,6 +100,7 @@ impl Outcome {
         Self {
             envs: r.envs,
             falls: (0..r.envs).filter(|&e| r.fell(e)).map(|e| fall(r, e)).collect(),
+            unreached_segments: schedule.len() - reached,
             segments,
             reach: (0..r.envs).filter_map(|e| reach_trial(r, e)).collect(),
             waypoint: (0..r.envs).filter_map(|e| waypoint_trial(r, e)).collect(),

@@ -27,8 +27,9 @@ pub struct Bench<'a> {
     pub name: &'a str,
     /// Where each protocol run writes its rollout (`None`: nowhere).
     pub rollouts: Option<&'a Path>,
-    /// The tracking policy's run that executes the plans (`None`: their own actions).
-    pub executor: Option<&'a Path>,
+    /// The tracking policy's run that executes the plans (`None`: their own actions), and the
+    /// share of its residual added to them.
+    pub executor: Option<(&'a Path, f32)>,
 }
 
 /// Sampler settings of one evaluated point: the NFE and guidance scale a sweep varies, and how
@@ -122,7 +123,8 @@ impl Bench<'_> {
         let config = ControlConfig {
             kick_every: if kicks { 1.0 } else { 0.0 },
             kick_max: if kicks { 0.5 } else { 0.0 },
-            executor: self.executor.map(Path::to_path_buf),
+            executor: self.executor.map(|(run, _)| run.to_path_buf()),
+            executor_residual: self.executor.map_or(flowmimic_control::executor::DEFAULT_RESIDUAL, |(_, share)| share),
             ..point.control(seconds)
         };
         let r = controller::run(self.model, self.humanoid, self.clip, tasks, &config, self.name, on_step)?;

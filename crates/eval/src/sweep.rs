@@ -35,8 +35,9 @@ pub struct EvalModel {
     /// a sweep varies the scale or the NFE and keeps the rest.
     pub sampler: Point,
     /// The tracking policy that executes its plans, if any ([`flowmimic_control::Executor`]),
-    /// and the SHA-256 of its policy file, part of every point's key.
-    pub executor: Option<(PathBuf, String)>,
+    /// with the SHA-256 of its policy file and the share of its residual added, part of every
+    /// point's key.
+    pub executor: Option<(PathBuf, String, f32)>,
 }
 
 impl EvalModel {
@@ -55,18 +56,19 @@ impl EvalModel {
         Ok(Self { label: label.to_string(), dir: dir.into(), model, content, inverse_content, sampler, executor: None })
     }
 
-    /// This model with its plans executed by the tracking policy of run directory `run`.
-    pub fn with_executor(mut self, run: &Path) -> Result<Self> {
+    /// This model with its plans executed by the tracking policy of run directory `run`, `residual`
+    /// of its residual added to each plan's action.
+    pub fn with_executor(mut self, run: &Path, residual: f32) -> Result<Self> {
         flowmimic_control::Executor::load(run)?;
         let file = flowmimic_track::train::policy_file(run);
         let content = format!("{:x}", Sha256::digest(flowmimic_io::read(&file)?));
-        self.executor = Some((run.into(), content));
+        self.executor = Some((run.into(), content, residual));
         Ok(self)
     }
 
     /// The protocols' bench for this model; each run's rollout is written in `rollouts`, if given.
     pub fn bench<'a>(&'a self, humanoid: &'a Arc<Humanoid>, clip: &'a Clip, rollouts: Option<&'a Path>) -> Bench<'a> {
-        let executor = self.executor.as_ref().map(|(run, _)| run.as_path());
+        let executor = self.executor.as_ref().map(|(run, _, share)| (run.as_path(), *share));
         Bench { model: &self.model, humanoid, clip, name: &self.label, rollouts, executor }
     }
 }
@@ -148,8 +150,12 @@ impl Store {
         if point.approach {
             steps += "\0approach";
         }
-        if let Some((_, executor)) = &m.executor {
+        if let Some((_, executor, residual)) = &m.executor {
             steps += &format!("\0executor {executor}");
+            // Points measured with all of the residual, before it could be shared, keep their keys.
+            if *residual != 1.0 {
+                steps += &format!(" residual {residual}");
+            }
         }
         let inputs = format!("{:x}", Sha256::digest(format!("{}\0{settings}{steps}", m.content)));
         let model = format!("{}@{}", m.label, &inputs[..12]);
@@ -340,7 +346,11 @@ fn described(m: &EvalModel, summaries: &[Summary]) -> String {
         c.heads,
         nfe.join(", "),
         m.sampler.describe()
-    ) + &m.executor.as_ref().map(|(run, _)| format!(", plans executed by `{}`", run.display())).unwrap_or_default()
+    ) + &m
+        .executor
+        .as_ref()
+        .map(|(run, _, share)| format!(", plans executed by `{}` (residual x {share})", run.display()))
+        .unwrap_or_default()
 }
 
 /// UTC date and time from the system clock (no extra dependency for one timestamp).
