@@ -25,6 +25,15 @@ pub fn envs(text: &str) -> Result<usize, String> {
     Ok(value)
 }
 
+/// A share from 0 to 1 (pair it with `allow_negative_numbers = true`, as [`seconds`]).
+pub fn share(text: &str) -> Result<f32, String> {
+    let value: f32 = text.parse().map_err(|_| format!("'{text}' is not a number"))?;
+    if !(0.0..=1.0).contains(&value) {
+        return Err(format!("{value}: give a share from 0 to 1"));
+    }
+    Ok(value)
+}
+
 /// A positive count (trials, episodes, iterations).
 pub fn count(text: &str) -> Result<usize, String> {
     match text.parse::<usize>() {

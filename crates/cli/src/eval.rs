@@ -44,8 +44,16 @@ pub struct Common {
     /// executes fm-walks' plans).
     #[arg(long, value_name = "RUN")]
     executor: Option<PathBuf>,
-    /// With --executor: the share of its residual added to the plan's action, 0 to 1.
-    #[arg(long, default_value_t = flowmimic_control::executor::DEFAULT_RESIDUAL, value_name = "SHARE")]
+    /// With --executor: how much of its residual (the correction it adds to each plan's action)
+    /// is added, 0 to 1.
+    #[arg(
+        long,
+        default_value_t = flowmimic_control::executor::DEFAULT_RESIDUAL,
+        value_name = "SHARE",
+        requires = "executor",
+        allow_negative_numbers = true,
+        value_parser = crate::args::share
+    )]
     executor_residual: f32,
     /// Start trials from this clip's frames (default: the generated straight walk).
     #[arg(long)]
@@ -94,6 +102,8 @@ pub enum EvalCommand {
     Survival {
         #[command(flatten)]
         common: Common,
+        /// Network evaluations per step to measure, each model at every one (its recommended
+        /// NFE is not used here).
         #[arg(long, value_delimiter = ',', default_value = "1,2,5,10,20")]
         nfe: Vec<usize>,
         /// Episode cap in seconds (default 1000 steps; quick 10 s).
@@ -206,6 +216,7 @@ pub enum EvalCommand {
     Latency {
         #[command(flatten)]
         common: Common,
+        /// Network evaluations per step to time, each model at every one.
         #[arg(long, value_delimiter = ',', default_value = "1,2,5,10,20")]
         nfe: Vec<usize>,
         /// Measure the guided control step at this scale (joystick schedule; the gradient as
@@ -265,8 +276,9 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
             crate::run::check_sampler(&model, &dir, &sampler.control(0.0))?;
             let mut m = lib(EvalModel::new(&label, &dir, model, sampler))?;
             if let Some(executor) = &common.executor {
-                m = lib(m.with_executor(executor, common.executor_residual))?;
-                eprintln!("{label}: {}", crate::run::executed_by(executor, common.executor_residual));
+                let executor = crate::paths::resolve(executor);
+                m = lib(m.with_executor(&executor, common.executor_residual))?;
+                eprintln!("{label}: {}", crate::run::executed_by(&executor, common.executor_residual));
             }
             Ok(m)
         })

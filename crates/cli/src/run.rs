@@ -72,9 +72,17 @@ pub struct RunArgs {
     /// expert made: pretrained/experts/executor-walks executes fm-walks' plans.
     #[arg(long, value_name = "RUN")]
     pub executor: Option<PathBuf>,
-    /// With --executor: the share of its residual added to the plan's action, 0 to 1 (half of
-    /// executor-walks' residual held kicks as well as all of it, and steered better).
-    #[arg(long, default_value_t = flowmimic_control::executor::DEFAULT_RESIDUAL, value_name = "SHARE")]
+    /// With --executor: how much of its residual (the correction it adds to each plan's action)
+    /// is added, 0 to 1 (half of executor-walks' residual held kicks about as well as all of it,
+    /// and steered better).
+    #[arg(
+        long,
+        default_value_t = flowmimic_control::executor::DEFAULT_RESIDUAL,
+        value_name = "SHARE",
+        requires = "executor",
+        allow_negative_numbers = true,
+        value_parser = crate::args::share
+    )]
     pub executor_residual: f32,
     /// Environments run at once (one batched model call per step).
     #[arg(long, default_value_t = 1, value_parser = crate::args::envs)]
@@ -448,7 +456,7 @@ impl RunArgs {
         let plain = chosen.control(self.drive.guidance.gradient, self.seconds());
         ControlConfig {
             execute: self.execute,
-            executor: self.executor.clone(),
+            executor: self.executor.as_deref().map(crate::paths::resolve),
             executor_residual: self.executor_residual,
             paced: self.paced,
             seed: self.seed,

@@ -447,6 +447,12 @@ fn a_newcomers_mistakes_get_clear_answers() {
     refused(&["run", "--executor", ahead.to_str().unwrap(), "--seconds", "0.2"], &["stand-ahead", "ahead"]);
     let model = experts.join("../models/fm");
     refused(&["eval", "survival", "--trials", "1", "--executor", model.to_str().unwrap()], &["not a tracking run"]);
+    let executor = experts.join("executor-walks");
+    refused(
+        &["run", "--executor", executor.to_str().unwrap(), "--executor-residual", "-1"],
+        &["-1", "share from 0 to 1"],
+    );
+    refused(&["run", "--executor-residual", "0.5", "--seconds", "0.2"], &["--executor <RUN>"]);
     refused(&["run", "--acceleration", "-1", "--seconds", "0.2"], &["acceleration = -1", "0 or more"]);
     // Files of the wrong kind.
     std::fs::write(dir.join("picture.png"), b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR").unwrap();
