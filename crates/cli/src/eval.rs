@@ -39,22 +39,8 @@ pub struct Common {
     /// Actions of each sampled trajectory executed before sampling again (1 = the paper).
     #[arg(long, default_value_t = 1)]
     execute: usize,
-    /// Execute each plan with this tracking policy (a `track train` run on `track plan-clips`'
-    /// clips) in place of the plan's own action, for every model (pretrained/experts/executor-walks
-    /// executes fm-walks' plans).
-    #[arg(long, value_name = "RUN")]
-    executor: Option<PathBuf>,
-    /// With --executor: how much of its residual (the correction it adds to each plan's action)
-    /// is added, 0 to 1.
-    #[arg(
-        long,
-        default_value_t = flowmimic_control::executor::DEFAULT_RESIDUAL,
-        value_name = "SHARE",
-        requires = "executor",
-        allow_negative_numbers = true,
-        value_parser = crate::args::share
-    )]
-    executor_residual: f32,
+    #[command(flatten)]
+    execution: crate::run::ExecutorArgs,
     /// Start trials from this clip's frames (default: the generated straight walk).
     #[arg(long)]
     clip: Option<PathBuf>,
@@ -74,8 +60,7 @@ impl Common {
             seed: 0,
             save_rollouts: false,
             execute: 1,
-            executor: None,
-            executor_residual: flowmimic_control::executor::DEFAULT_RESIDUAL,
+            execution: crate::run::ExecutorArgs::default(),
             clip: None,
             guidance,
         }
@@ -275,10 +260,10 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
             };
             crate::run::check_sampler(&model, &dir, &sampler.control(0.0))?;
             let mut m = lib(EvalModel::new(&label, &dir, model, sampler))?;
-            if let Some(executor) = &common.executor {
-                let executor = crate::paths::resolve(executor);
-                m = lib(m.with_executor(&executor, common.executor_residual))?;
-                eprintln!("{label}: {}", crate::run::executed_by(&executor, common.executor_residual));
+            if let Some(executor) = common.execution.run() {
+                let residual = common.execution.executor_residual;
+                m = lib(m.with_executor(&executor, residual))?;
+                eprintln!("{label}: {}", crate::run::executed_by(&executor, residual));
             }
             Ok(m)
         })

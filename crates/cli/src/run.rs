@@ -66,24 +66,8 @@ pub struct RunArgs {
     /// receding horizon, up to H + 1).
     #[arg(long, default_value_t = 1)]
     pub execute: usize,
-    /// Execute each plan with this tracking policy (a `track train` run on `track plan-clips`'
-    /// clips) in place of the plan's own action: it steers the body back to the plan's next
-    /// state after a push. An executor suits the plans of the model whose data its clips'
-    /// expert made: pretrained/experts/executor-walks executes fm-walks' plans.
-    #[arg(long, value_name = "RUN")]
-    pub executor: Option<PathBuf>,
-    /// With --executor: how much of its residual (the correction it adds to each plan's action)
-    /// is added, 0 to 1 (half of executor-walks' residual held kicks about as well as all of it,
-    /// and steered better).
-    #[arg(
-        long,
-        default_value_t = flowmimic_control::executor::DEFAULT_RESIDUAL,
-        value_name = "SHARE",
-        requires = "executor",
-        allow_negative_numbers = true,
-        value_parser = crate::args::share
-    )]
-    pub executor_residual: f32,
+    #[command(flatten)]
+    pub execution: ExecutorArgs,
     /// Environments run at once (one batched model call per step).
     #[arg(long, default_value_t = 1, value_parser = crate::args::envs)]
     pub envs: usize,
@@ -456,8 +440,8 @@ impl RunArgs {
         let plain = chosen.control(self.drive.guidance.gradient, self.seconds());
         ControlConfig {
             execute: self.execute,
-            executor: self.executor.as_deref().map(crate::paths::resolve),
-            executor_residual: self.executor_residual,
+            executor: self.execution.run(),
+            executor_residual: self.execution.executor_residual,
             paced: self.paced,
             seed: self.seed,
             ..plain
@@ -585,6 +569,42 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     print_timing(&rollout);
     eprintln!("wrote {}", out.display());
     Ok(())
+}
+
+/// Which tracking policy executes the plans, and how much of its residual (`run` and `eval`).
+#[derive(Args, Clone, Debug)]
+pub struct ExecutorArgs {
+    /// Execute each plan with this tracking policy (a `track train` run on `track plan-clips`'
+    /// clips) in place of the plan's own action: it steers the body back to the plan's next
+    /// state after a push. An executor suits the plans of the model whose data its clips'
+    /// expert made: pretrained/experts/executor-walks executes fm-walks' plans.
+    #[arg(long, value_name = "RUN")]
+    pub executor: Option<PathBuf>,
+    /// With --executor: how much of its residual (the correction it adds to each plan's action)
+    /// is added, 0 to 1 (half of executor-walks' residual held kicks about as well as all of it,
+    /// and steered better).
+    #[arg(
+        long,
+        default_value_t = flowmimic_control::executor::DEFAULT_RESIDUAL,
+        value_name = "SHARE",
+        requires = "executor",
+        allow_negative_numbers = true,
+        value_parser = crate::args::share
+    )]
+    pub executor_residual: f32,
+}
+
+impl Default for ExecutorArgs {
+    fn default() -> Self {
+        Self { executor: None, executor_residual: flowmimic_control::executor::DEFAULT_RESIDUAL }
+    }
+}
+
+impl ExecutorArgs {
+    /// The executor's run, found under the checkout from any folder as models are.
+    pub fn run(&self) -> Option<PathBuf> {
+        self.executor.as_deref().map(crate::paths::resolve)
+    }
 }
 
 /// "plans executed by RUN (residual x SHARE)", as `run` and `eval` name an executor.
