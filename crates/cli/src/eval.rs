@@ -262,6 +262,7 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
             let mut m = lib(EvalModel::new(&label, &dir, model, sampler))?;
             if let Some(executor) = common.execution.run() {
                 let residual = common.execution.executor_residual;
+                crate::run::check_executor(&executor)?;
                 m = lib(m.with_executor(&executor, residual))?;
                 eprintln!("{label}: {}", crate::run::executed_by(&executor, residual));
             }

@@ -519,7 +519,7 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     let label =
         if model.config.task_labels { format!(", task label {}", setting_name(&task.label())) } else { String::new() };
     if let Some(run) = &control.executor {
-        flowmimic_control::Executor::load(run)?;
+        check_executor(run)?;
     }
     let executed = control
         .executor
@@ -605,6 +605,19 @@ impl ExecutorArgs {
     pub fn run(&self) -> Option<PathBuf> {
         self.executor.as_deref().map(crate::paths::resolve)
     }
+}
+
+/// Loads the executor `run` to refuse a bad one before anything starts, and says so when it
+/// looks like an expert of clips rather than an executor.
+pub(crate) fn check_executor(run: &Path) -> Result<()> {
+    if !flowmimic_control::Executor::load(run)?.started_on_plans() {
+        eprintln!(
+            "note: executor {} was not trained as one (track.fresh_output is off, as in an expert of clips, which \
+             fails plans within 2 s); an executor is trained with configs/executor.toml on `track plan-clips`' clips",
+            run.display()
+        );
+    }
+    Ok(())
 }
 
 /// "plans executed by RUN (residual x SHARE)", as `run` and `eval` name an executor.

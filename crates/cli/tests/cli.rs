@@ -453,6 +453,11 @@ fn a_newcomers_mistakes_get_clear_answers() {
         &["-1", "share from 0 to 1"],
     );
     refused(&["run", "--executor-residual", "0.5", "--seconds", "0.2"], &["--executor <RUN>"]);
+    // An expert of clips is a valid policy, but not an executor: said, not refused.
+    let expert = experts.join("walks-pushes");
+    let noted =
+        ok(&dir, &["run", "--executor", expert.to_str().unwrap(), "--seconds", "0.2", "-o", "x.rollout.safetensors"]);
+    assert!(noted.contains("not trained as one"), "{noted}");
     refused(&["run", "--acceleration", "-1", "--seconds", "0.2"], &["acceleration = -1", "0 or more"]);
     // Files of the wrong kind.
     std::fs::write(dir.join("picture.png"), b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR").unwrap();

@@ -27,6 +27,7 @@ pub const DEFAULT_RESIDUAL: f32 = 0.5;
 pub struct Executor {
     policy: Policy,
     action_scale: f64,
+    started_on_plans: bool,
 }
 
 impl Executor {
@@ -49,7 +50,14 @@ impl Executor {
                 file.display()
             )));
         }
-        Ok(Self { policy, action_scale: cfg.action_scale })
+        Ok(Self { policy, action_scale: cfg.action_scale, started_on_plans: cfg.fresh_output })
+    }
+
+    /// Whether the policy was started as an executor (`track.fresh_output`, as
+    /// configs/executor.toml does). An expert of clips is a valid policy too, but it fails plans
+    /// within 2 s; this is the one mark that tells them apart.
+    pub fn started_on_plans(&self) -> bool {
+        self.started_on_plans
     }
 
     /// The normalised actions that `envs` execute for their plans, each at its step `used`
