@@ -229,6 +229,11 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
     } else {
         &common.models[..]
     };
+    // One executor for every model: checked (and a plain expert noted) once.
+    let executor = common.execution.run();
+    if let Some(run) = &executor {
+        crate::run::check_executor(run)?;
+    }
     specs
         .iter()
         .map(|s| {
@@ -260,11 +265,10 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
             };
             crate::run::check_sampler(&model, &dir, &sampler.control(0.0))?;
             let mut m = lib(EvalModel::new(&label, &dir, model, sampler))?;
-            if let Some(executor) = common.execution.run() {
+            if let Some(executor) = &executor {
                 let residual = common.execution.executor_residual;
-                crate::run::check_executor(&executor)?;
-                m = lib(m.with_executor(&executor, residual))?;
-                eprintln!("{label}: {}", crate::run::executed_by(&executor, residual));
+                m = lib(m.with_executor(executor, residual))?;
+                eprintln!("{label}: {}", crate::run::executed_by(executor, residual));
             }
             Ok(m)
         })
