@@ -71,7 +71,7 @@ fn collect_run(
     dataset: &mut Dataset,
     cfg: &CollectConfig,
 ) -> Result<()> {
-    let expert = run.join(crate::track::RUN_POLICY);
+    let expert = run.join(flowmimic_track::train::POLICY_FILE);
     let ck = Checkpoint::read(&expert)?;
     let (expert_cfg, policy) = (ck.config()?, ck.policy()?);
     let own;

@@ -1,7 +1,6 @@
 //! `flowmimic export`: a trajectory model or an expert as an ONNX graph, and optionally the data
 //! to check another runtime against flowmimic (`examples/onnx_check.py`).
 
-use crate::track::RUN_POLICY;
 use anyhow::{Context, Result, bail};
 use flowmimic_control::{History, Rollout};
 use flowmimic_geom::{heading, quat_from_wxyz};
@@ -9,7 +8,7 @@ use flowmimic_model::{Objective, TrajectoryModel};
 use flowmimic_sim::Humanoid;
 use flowmimic_sim::{NUM_DOFS, STATE_DIM};
 use flowmimic_track::task::{Reference, Tracker};
-use flowmimic_track::train::Checkpoint;
+use flowmimic_track::train::{Checkpoint, POLICY_FILE};
 use rand::SeedableRng;
 use rand::rngs::StdRng;
 use rand_distr::{Distribution, StandardNormal};
@@ -97,8 +96,8 @@ pub fn run(
             flowmimic_io::tensors::save(check, &tensors, meta)?;
             eprintln!("wrote {}: {n} inputs and flowmimic's outputs and samples", check.display());
         }
-    } else if path.join(RUN_POLICY).exists() {
-        let checkpoint = Checkpoint::read(&path.join(RUN_POLICY))?;
+    } else if path.join(POLICY_FILE).exists() {
+        let checkpoint = Checkpoint::read(&path.join(POLICY_FILE))?;
         let policy = checkpoint.policy()?;
         let clip = checkpoint.meta("clip")?;
         let bytes =

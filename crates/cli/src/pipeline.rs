@@ -313,7 +313,7 @@ impl Stages<'_> {
         }
         stage(&format!("expert '{name}'"), &dir, key(&parts), || {
             let start = match init {
-                _ if dir.join(crate::track::RUN_POLICY).exists() => Start::Resume,
+                _ if dir.join(flowmimic_track::train::POLICY_FILE).exists() => Start::Resume,
                 Some(init) => Start::From(init),
                 None => Start::Fresh,
             };

@@ -453,7 +453,7 @@ impl RunArgs {
 /// is not a model at all.
 pub fn load_model(dir: &Path) -> Result<TrajectoryModel> {
     if !dir.join("model.safetensors").exists() {
-        if dir.join(crate::track::RUN_POLICY).exists() {
+        if dir.join(flowmimic_track::train::POLICY_FILE).exists() {
             bail!(
                 "{} is a tracking expert (`flowmimic track train` writes those), not a trajectory model \
                  (`flowmimic train` writes model.safetensors): e.g. --model {}",

@@ -7,7 +7,7 @@ use flowmimic_motion::Clip;
 use flowmimic_plot::{Chart, Series};
 use flowmimic_sim::{CONTROL_HZ, Humanoid};
 use flowmimic_track::plan::{PlanClipSetup, plan_clips};
-use flowmimic_track::train::{Checkpoint, ClipLog, EvalReport, IterationLog, policy_file};
+use flowmimic_track::train::{Checkpoint, ClipLog, EvalReport, IterationLog, POLICY_FILE, policy_file};
 use flowmimic_track::{EvalSetup, TrackConfig, Trainer, evaluate};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -111,8 +111,6 @@ pub(crate) fn run_clips(humanoid: &Arc<Humanoid>, run: &Path) -> Result<Vec<Clip
     }
     Ok(clips)
 }
-/// The policy of a run.
-pub(crate) const RUN_POLICY: &str = flowmimic_track::train::POLICY_FILE;
 
 /// Learning curves from the CSV rows: reward, episode length and tracking error.
 fn plot_curves(out: &Path, rows: &[String]) -> Result<()> {
@@ -197,7 +195,7 @@ pub fn run(cmd: TrackCommand, humanoid: &Arc<Humanoid>, mut cfg: TrackConfig) ->
             eprintln!("wrote reward, episode_length and body_error .png/.svg in {}", run.display());
         }
         TrackCommand::Eval { run, episodes, clip, kicks, start_frame } => {
-            let ck = Checkpoint::read(&run.join(RUN_POLICY))?;
+            let ck = Checkpoint::read(&run.join(POLICY_FILE))?;
             let (cfg, policy_net) = (ck.config()?, ck.policy()?);
             let clips = if clip.is_empty() { run_clips(humanoid, &run)? } else { load_clips(humanoid, &clip)? };
             // One JSON line per clip, so that a failing clip cannot hide behind an average;
@@ -293,7 +291,7 @@ pub enum Start {
 
 /// Trains (or continues) an expert on `clips` into the run directory `out`.
 pub fn train(humanoid: &Arc<Humanoid>, clips: Vec<Clip>, out: &Path, cfg: &TrackConfig, start: Start) -> Result<()> {
-    let policy_path = out.join(RUN_POLICY);
+    let policy_path = out.join(POLICY_FILE);
     let log_path = out.join("log.csv");
     let resume = matches!(start, Start::Resume);
     if !resume && policy_path.exists() {
