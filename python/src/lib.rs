@@ -212,7 +212,7 @@ struct Controller {
 impl Controller {
     /// `settings_json`: settings over the model's recommended ones for `task` (JSON of
     /// `nfe`, `guidance_scale`, `adaptive`, `inverse_dynamics`, `acceleration`,
-    /// `guidance_interval`, `approach`).
+    /// `guidance_interval`, `approach`, `start_actions`, `executor`, `executor_residual`).
     #[new]
     #[pyo3(signature = (model, envs = 1, task = "walk", settings_json = None, clip = None, seed = 0))]
     fn new(

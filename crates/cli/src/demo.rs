@@ -27,6 +27,8 @@ const DEMO_JOYSTICK: Settings = Settings {
     guidance_interval: None,
     approach: None,
     start_actions: None,
+    executor: None,
+    executor_residual: None,
 };
 
 /// Forward, turn left, turn right, then backward, the walk the joystick protocol asks in
@@ -47,7 +49,14 @@ pub fn run(model_dir: &Path, out: &Path, drive: &DriveArgs, humanoid: &Arc<Human
     let clip = start_clip(humanoid, None)?;
     let name = model_dir.display().to_string();
     eprintln!("{} model from {name} (H {})", model.objective.label(), model.layout().spec.horizon);
-    let joystick = drive.choose_over(&DEMO_JOYSTICK, "demo", "joystick")?;
+    // The demo's own guidance, with the model's executor for the joystick where it has one.
+    let model_joystick = recommended(model_dir, "joystick")?;
+    let demo_joystick = Settings {
+        executor: model_joystick.executor,
+        executor_residual: model_joystick.executor_residual,
+        ..DEMO_JOYSTICK
+    };
+    let joystick = drive.choose_over(&demo_joystick, "demo", "joystick")?;
     let reach = drive.choose(&recommended(model_dir, "reach")?, "reach")?;
 
     // 1. Joystick: forward, turn left, turn right, backward.

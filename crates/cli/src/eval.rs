@@ -39,8 +39,6 @@ pub struct Common {
     /// Actions of each sampled trajectory executed before sampling again (1 = the paper).
     #[arg(long, default_value_t = 1)]
     execute: usize,
-    #[command(flatten)]
-    execution: crate::run::ExecutorArgs,
     /// Start trials from this clip's frames (default: the generated straight walk).
     #[arg(long)]
     clip: Option<PathBuf>,
@@ -52,18 +50,7 @@ impl Common {
     /// Settings for a programmatic run (the pipeline): models as LABEL=DIR.
     pub fn new(models: Vec<String>, out: PathBuf, quick: bool) -> Self {
         let guidance = GuidanceArgs::default();
-        Self {
-            models,
-            out,
-            quick,
-            trials: None,
-            seed: 0,
-            save_rollouts: false,
-            execute: 1,
-            execution: crate::run::ExecutorArgs::default(),
-            clip: None,
-            guidance,
-        }
+        Self { models, out, quick, trials: None, seed: 0, save_rollouts: false, execute: 1, clip: None, guidance }
     }
 }
 
@@ -229,11 +216,6 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
     } else {
         &common.models[..]
     };
-    // One executor for every model: checked (and a plain expert noted) once.
-    let executor = common.execution.run();
-    if let Some(run) = &executor {
-        crate::run::check_executor(run)?;
-    }
     specs
         .iter()
         .map(|s| {
@@ -265,8 +247,8 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
             };
             crate::run::check_sampler(&model, &dir, &sampler.control(0.0))?;
             let mut m = lib(EvalModel::new(&label, &dir, model, sampler))?;
-            if let Some(executor) = &executor {
-                let residual = common.execution.executor_residual;
+            if let Some(executor) = &chosen.executor {
+                let residual = chosen.executor_residual;
                 m = lib(m.with_executor(executor, residual))?;
                 eprintln!("{label}: {}", crate::run::executed_by(executor, residual));
             }
@@ -340,7 +322,7 @@ pub fn run(cmd: EvalCommand, humanoid: &Arc<Humanoid>) -> Result<()> {
         EvalCommand::Latency { guided: Some(_), .. } => ("joystick", None, None),
         _ => ("walk", None, None),
     };
-    let drive = DriveArgs { nfe, guidance_scale: None, approach, guidance: common.guidance };
+    let drive = DriveArgs { nfe, guidance_scale: None, approach, guidance: common.guidance.clone() };
     let models = load_models(&common, &drive, task)?;
     let swept = match &cmd {
         EvalCommand::Guidance { scales, .. } => scales,

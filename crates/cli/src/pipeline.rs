@@ -459,14 +459,16 @@ impl Stages<'_> {
 }
 
 /// The settings of a `recommended.toml` for a model of the pipeline's own: its keys, checked,
-/// under a header that says where they come from (the file's comments measure its own model).
+/// under a header that says where they come from (the file's comments measure its own model),
+/// without its executor, which executes the plans of that model's data alone.
 fn recommended_settings(model: &Path) -> Result<String> {
     use flowmimic_control::recommended::{FILE, Recommended};
     Recommended::load(model).context("pipeline.recommended")?;
     let file = model.join(FILE);
     let text =
         std::fs::read_to_string(&file).with_context(|| format!("pipeline.recommended: reading {}", file.display()))?;
-    let keys: Vec<&str> = text.lines().filter(|l| !l.trim_start().starts_with('#')).collect();
+    let keys: Vec<&str> =
+        text.lines().filter(|l| !l.trim_start().starts_with('#') && !l.trim_start().starts_with("executor")).collect();
     Ok(format!(
         "# The settings of {} ([pipeline] recommended), measured on that model, whose recipe this\n\
          # pipeline follows; what this model does with them: the pipeline's eval/report.md.\n{}\n",

@@ -66,8 +66,6 @@ pub struct RunArgs {
     /// receding horizon, up to H + 1).
     #[arg(long, default_value_t = 1)]
     pub execute: usize,
-    #[command(flatten)]
-    pub execution: ExecutorArgs,
     /// Environments run at once (one batched model call per step).
     #[arg(long, default_value_t = 1, value_parser = crate::args::envs)]
     pub envs: usize,
@@ -87,7 +85,7 @@ pub struct RunArgs {
 /// How the model is driven by `run`, `play` and `demo`. A setting left out comes from the
 /// model directory's recommended settings for the task ([`flowmimic_control::recommended`]),
 /// else from the built-in default.
-#[derive(Args, Clone, Copy, Default)]
+#[derive(Args, Clone, Default)]
 pub struct DriveArgs {
     /// Network evaluations per control step (default: the model's recommended.toml for the
     /// task, else 5).
@@ -110,7 +108,7 @@ pub struct DriveArgs {
 
 /// How guidance acts, beside its scale: shared by `run`, `play`, `demo` and `eval`; like
 /// [`DriveArgs`], a setting left out comes from the model, else the default.
-#[derive(Args, Clone, Copy, Default)]
+#[derive(Args, Clone, Default)]
 pub struct GuidanceArgs {
     /// How guidance takes its gradient: through-network (a vector-Jacobian product through the
     /// denoiser, so a cost on states reaches the executed action) or cost-only.
@@ -147,10 +145,12 @@ pub struct GuidanceArgs {
     /// task, else pd-targets).
     #[arg(long, value_parser = parse_start_actions, value_name = "pd-targets|inverse-dynamics")]
     pub start_actions: Option<StartActions>,
+    #[command(flatten)]
+    pub execution: ExecutorArgs,
 }
 
 /// Which settings a command drives a model with, and where each came from.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub struct Chosen {
     pub nfe: usize,
     pub guidance_scale: f32,
@@ -160,6 +160,9 @@ pub struct Chosen {
     pub guidance_interval: Option<(usize, usize)>,
     pub approach: bool,
     pub start_actions: StartActions,
+    /// The tracking run that executes the plans (checked), and the share of its residual.
+    pub executor: Option<PathBuf>,
+    pub executor_residual: f32,
 }
 
 impl DriveArgs {
@@ -199,6 +202,21 @@ impl DriveArgs {
         }
         let start = |a: Option<StartActions>| a.map(|a| setting_name(&a));
         pick("start actions", start(g.start_actions), start(model.start_actions), "pd-targets");
+        let flag_executor = g.execution.executor();
+        let executor = flag_executor.clone().unwrap_or_else(|| model.executor.clone());
+        let shown = |e: &Option<PathBuf>| e.as_ref().map_or("none".into(), |e| e.display().to_string());
+        pick(
+            "executor",
+            flag_executor.as_ref().map(shown),
+            model.executor.as_ref().map(|e| e.display().to_string()),
+            "none",
+        );
+        if executor.is_some() {
+            let residual = flowmimic_control::executor::DEFAULT_RESIDUAL.to_string();
+            pick("executor residual", fmt(g.execution.executor_residual), fmt(model.executor_residual), &residual);
+        } else if g.execution.executor_residual.is_some() {
+            eprintln!("note: --executor-residual is not used without an executor (--executor or the model's)");
+        }
         eprintln!("settings for {task}: {}", said.join(", "));
         let flags = Settings {
             nfe: self.nfe,
@@ -209,8 +227,14 @@ impl DriveArgs {
             guidance_interval: g.guidance_interval.map(|(a, b)| [a, b]),
             approach: self.approach,
             start_actions: g.start_actions,
+            executor: None,
+            executor_residual: g.execution.executor_residual,
         };
-        let settings = flags.or(model);
+        // The flag's "none" turns the model's executor off, which `or` would keep.
+        let settings = Settings { executor, ..flags.or(model) };
+        if let Some(run) = &settings.executor {
+            check_executor(run)?;
+        }
         let config = settings.control(g.gradient, 0.0).map_err(|e| anyhow::anyhow!("{e} (from flags or the model)"))?;
         Ok(Chosen {
             nfe: config.nfe,
@@ -221,6 +245,8 @@ impl DriveArgs {
             guidance_interval: config.guidance_steps,
             approach: settings.approaches(),
             start_actions: config.start_actions,
+            executor: config.executor,
+            executor_residual: config.executor_residual,
         })
     }
 }
@@ -235,6 +261,8 @@ impl Chosen {
             inverse_dynamics: self.inverse_dynamics,
             acceleration: self.acceleration,
             start_actions: self.start_actions,
+            executor: self.executor.clone(),
+            executor_residual: self.executor_residual,
             ..ControlConfig::new(self.nfe, self.guidance_scale, seconds)
         }
     }
@@ -438,14 +466,7 @@ impl RunArgs {
 
     pub fn control(&self, chosen: &Chosen) -> ControlConfig {
         let plain = chosen.control(self.drive.guidance.gradient, self.seconds());
-        ControlConfig {
-            execute: self.execute,
-            executor: self.execution.run(),
-            executor_residual: self.execution.executor_residual,
-            paced: self.paced,
-            seed: self.seed,
-            ..plain
-        }
+        ControlConfig { execute: self.execute, paced: self.paced, seed: self.seed, ..plain }
     }
 }
 
@@ -518,9 +539,6 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     };
     let label =
         if model.config.task_labels { format!(", task label {}", setting_name(&task.label())) } else { String::new() };
-    if let Some(run) = &control.executor {
-        check_executor(run)?;
-    }
     let executed = control
         .executor
         .as_ref()
@@ -571,39 +589,29 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     Ok(())
 }
 
-/// Which tracking policy executes the plans, and how much of its residual (`run` and `eval`).
-#[derive(Args, Clone, Debug)]
+/// Which tracking policy executes the plans, and how much of its residual (`run`, `play`,
+/// `demo` and `eval`); each from the model's recommended.toml where not given.
+#[derive(Args, Clone, Debug, Default)]
 pub struct ExecutorArgs {
     /// Execute each plan with this tracking policy (a `track train` run on `track plan-clips`'
     /// clips) in place of the plan's own action: it steers the body back to the plan's next
     /// state after a push. An executor suits the plans of the model whose data its clips'
-    /// expert made: pretrained/experts/executor-walks executes fm-walks' plans.
-    #[arg(long, value_name = "RUN")]
+    /// expert made: pretrained/experts/executor-walks executes fm-walks' plans. `none`: the
+    /// plan's own action (default: the model's recommended.toml for the task, else none).
+    #[arg(long, value_name = "RUN|none")]
     pub executor: Option<PathBuf>,
-    /// With --executor: how much of its residual (the correction it adds to each plan's action)
-    /// is added, 0 to 1 (half of executor-walks' residual held kicks about as well as all of it,
-    /// and steered better).
-    #[arg(
-        long,
-        default_value_t = flowmimic_control::executor::DEFAULT_RESIDUAL,
-        value_name = "SHARE",
-        requires = "executor",
-        allow_negative_numbers = true,
-        value_parser = crate::args::share
-    )]
-    pub executor_residual: f32,
-}
-
-impl Default for ExecutorArgs {
-    fn default() -> Self {
-        Self { executor: None, executor_residual: flowmimic_control::executor::DEFAULT_RESIDUAL }
-    }
+    /// How much of the executor's residual (the correction it adds to each plan's action) is
+    /// added, 0 to 1 (default: the model's recommended.toml for the task, else 0.5: half of
+    /// executor-walks' residual held kicks about as well as all of it, and steered better).
+    #[arg(long, value_name = "SHARE", allow_negative_numbers = true, value_parser = crate::args::share)]
+    pub executor_residual: Option<f32>,
 }
 
 impl ExecutorArgs {
-    /// The executor's run, found under the checkout from any folder as models are.
-    pub fn run(&self) -> Option<PathBuf> {
-        self.executor.as_deref().map(crate::paths::resolve)
+    /// The flag's executor: `None` without the flag, `Some(None)` for `none`, else the run,
+    /// found under the checkout from any folder as models are.
+    pub fn executor(&self) -> Option<Option<PathBuf>> {
+        self.executor.as_deref().map(|e| (e != Path::new("none")).then(|| crate::paths::resolve(e)))
     }
 }
 

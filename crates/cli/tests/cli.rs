@@ -452,7 +452,16 @@ fn a_newcomers_mistakes_get_clear_answers() {
         &["run", "--executor", executor.to_str().unwrap(), "--executor-residual", "-1"],
         &["-1", "share from 0 to 1"],
     );
-    refused(&["run", "--executor-residual", "0.5", "--seconds", "0.2"], &["--executor <RUN>"]);
+    let unused = ok(&dir, &["run", "--executor-residual", "0.5", "--seconds", "0.2", "-o", "x.rollout.safetensors"]);
+    assert!(unused.contains("not used without an executor"), "{unused}");
+    // A model's recommended executor is taken, and `none` turns it off.
+    let walks = experts.join("../models/fm-walks");
+    let walks = walks.to_str().unwrap();
+    let taken = ok(&dir, &["run", "--model", walks, "--seconds", "0.2", "-o", "x.rollout.safetensors"]);
+    assert!(taken.contains("executor-walks (model)") && taken.contains("executor residual 0.5 (model)"), "{taken}");
+    let off =
+        ok(&dir, &["run", "--model", walks, "--executor", "none", "--seconds", "0.2", "-o", "x.rollout.safetensors"]);
+    assert!(off.contains("executor none (flag)") && !off.contains("plans executed by"), "{off}");
     // An expert of clips is a valid policy, but not an executor: said, not refused.
     let expert = experts.join("walks-pushes");
     let noted =
@@ -587,6 +596,7 @@ fn the_pipeline_runs_every_stage_then_skips_what_is_done() {
     assert!(text.contains("== train fm: up to date") && text.contains("== evaluate ->"), "{text}");
     let recommended = std::fs::read_to_string(dir.join("i/model/fm/recommended.toml")).unwrap();
     assert!(recommended.contains("fm-walks") && recommended.contains("adaptive = 0"), "{recommended}");
+    assert!(!recommended.contains("executor"), "fm-walks' executor suits its plans, not this model's: {recommended}");
     let report = std::fs::read_to_string(dir.join("i/eval/report.md")).unwrap();
     assert_eq!(report.matches("## Joystick tracking").count(), 1, "the report holds this evaluation only: {report}");
     // A layer that sets init_iterations = 0 (as configs/recipe-fm.toml over the cpu preset)

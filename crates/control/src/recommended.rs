@@ -10,16 +10,19 @@
 //! adaptive = 1.5
 //! inverse_dynamics = 0.2
 //! ```
+//!
+//! An `executor` (a tracking run that executes the plans, [`crate::Executor`]) is a path
+//! relative to the model directory, as `executor = "../../experts/executor-walks"`.
 
 use crate::{Adaptive, ControlError, StartActions};
 use serde::{Deserialize, Serialize};
-use std::path::Path;
+use std::path::{Component, Path, PathBuf};
 
 /// The file's name in a model directory.
 pub const FILE: &str = "recommended.toml";
 
 /// How to drive a model for one task; each setting absent where the model has no measured best.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Settings {
     /// Network evaluations per control step.
@@ -38,6 +41,11 @@ pub struct Settings {
     pub approach: Option<bool>,
     /// The actions of the history an episode starts with.
     pub start_actions: Option<StartActions>,
+    /// A tracking run that executes the plans: relative to the model directory in the file,
+    /// joined to it once loaded.
+    pub executor: Option<PathBuf>,
+    /// The share of the executor's residual added to each plan's action, 0-1.
+    pub executor_residual: Option<f32>,
 }
 
 /// A model's recommended settings, per task.
@@ -71,6 +79,8 @@ impl Settings {
             guidance_interval: self.guidance_interval.or(under.guidance_interval),
             approach: self.approach.or(under.approach),
             start_actions: self.start_actions.or(under.start_actions),
+            executor: self.executor.clone().or_else(|| under.executor.clone()),
+            executor_residual: self.executor_residual.or(under.executor_residual),
         }
     }
 
@@ -81,7 +91,7 @@ impl Settings {
 
     /// The controller's settings for `seconds`, the defaults where absent ([`DEFAULT_NFE`],
     /// [`DEFAULT_SCALE`], the fixed scale, no inverse dynamics, the command's speed as given,
-    /// the default guidance interval, a start in PD targets).
+    /// the default guidance interval, a start in PD targets, no executor).
     pub fn control(
         &self,
         gradient: flowmimic_model::Gradient,
@@ -96,6 +106,8 @@ impl Settings {
             inverse_dynamics: self.inverse_dynamics.unwrap_or(0.0),
             acceleration: self.acceleration.unwrap_or(0.0),
             start_actions: self.start_actions.unwrap_or_default(),
+            executor: self.executor.clone(),
+            executor_residual: self.executor_residual.unwrap_or(crate::executor::DEFAULT_RESIDUAL),
             ..crate::ControlConfig::new(
                 self.nfe.unwrap_or(DEFAULT_NFE),
                 self.guidance_scale.unwrap_or(DEFAULT_SCALE),
@@ -122,6 +134,9 @@ impl Settings {
         if let Some(a) = self.acceleration.filter(|a| !(a.is_finite() && *a >= 0.0)) {
             return bad("acceleration", format!("{a}: m/s^2, 0 or more (0 for the command as given)"));
         }
+        if let Some(r) = self.executor_residual.filter(|r| !(0.0..=1.0).contains(r)) {
+            return bad("executor_residual", format!("{r}: a share from 0 to 1"));
+        }
         if let Some([a, b]) = self.guidance_interval.filter(|[a, b]| a >= b) {
             return bad("guidance_interval", format!("[{a}, {b}]: start before end"));
         }
@@ -139,28 +154,60 @@ impl Recommended {
         }
         let bad = |m: String| ControlError::Start(format!("{}: {m}", path.display()));
         let text = flowmimic_io::read_to_string(&path).map_err(|e| ControlError::Start(e.to_string()))?;
-        let r: Self = toml::from_str(&text).map_err(|e| bad(e.to_string()))?;
-        for (task, s) in r.tasks() {
+        let mut r: Self = toml::from_str(&text).map_err(|e| bad(e.to_string()))?;
+        for (task, s) in r.tasks_mut() {
             s.validate().map_err(|m| bad(format!("[{task}] {m}")))?;
+            if let Some(executor) = &mut s.executor {
+                *executor = beside(dir, executor);
+                if !executor.exists() {
+                    return Err(bad(format!("[{task}] executor: no tracking run at {}", executor.display())));
+                }
+            }
         }
         Ok(r)
     }
 
     /// Each task's settings, by the task's name (the file's table).
-    fn tasks(&self) -> [(&'static str, &Settings); 6] {
+    fn tasks_mut(&mut self) -> [(&'static str, &mut Settings); 6] {
         [
-            ("walk", &self.walk),
-            ("joystick", &self.joystick),
-            ("reach", &self.reach),
-            ("waypoint", &self.waypoint),
-            ("compose", &self.compose),
-            ("play", &self.play),
+            ("walk", &mut self.walk),
+            ("joystick", &mut self.joystick),
+            ("reach", &mut self.reach),
+            ("waypoint", &mut self.waypoint),
+            ("compose", &mut self.compose),
+            ("play", &mut self.play),
         ]
     }
 
     /// The settings of the task named `task` (`walk`, `joystick`, `reach`, `waypoint`,
     /// `compose`, `play`); none for another name.
     pub fn for_task(&self, task: &str) -> Settings {
-        self.tasks().into_iter().find(|(name, _)| *name == task).map(|(_, s)| *s).unwrap_or_default()
+        let settings = match task {
+            "walk" => &self.walk,
+            "joystick" => &self.joystick,
+            "reach" => &self.reach,
+            "waypoint" => &self.waypoint,
+            "compose" => &self.compose,
+            "play" => &self.play,
+            _ => return Settings::default(),
+        };
+        settings.clone()
     }
+}
+
+/// `relative` from the directory `dir`, its `..` taken out where they can be
+/// (`pretrained/models/fm-walks` and `../../experts/x`: `pretrained/experts/x`), as a user
+/// would write it.
+fn beside(dir: &Path, relative: &Path) -> PathBuf {
+    let mut out = PathBuf::new();
+    for part in dir.join(relative).components() {
+        match part {
+            Component::ParentDir if matches!(out.components().next_back(), Some(Component::Normal(_))) => {
+                out.pop();
+            }
+            Component::CurDir => {}
+            other => out.push(other),
+        }
+    }
+    out
 }

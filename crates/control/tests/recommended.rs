@@ -50,5 +50,18 @@ fn a_bad_recommended_file_is_refused_with_its_name() {
     std::fs::write(&file, "[walk]\nstart_actions = \"inverse-dynamics\"\n").unwrap();
     let walk = Recommended::load(&dir).unwrap().walk;
     assert_eq!(walk.start_actions, Some(flowmimic_control::StartActions::InverseDynamics));
+    // An executor is named from the model directory, and must be there.
+    std::fs::write(&file, "[joystick]\nexecutor = \"../nowhere\"\n").unwrap();
+    let err = Recommended::load(&dir).unwrap_err().to_string();
+    assert!(err.contains("[joystick] executor") && err.contains("nowhere"), "{err}");
+    std::fs::create_dir_all(dir.join("runs/executor")).unwrap();
+    std::fs::write(&file, "[joystick]\nexecutor = \"runs/./executor/../executor\"\nexecutor_residual = 0.25\n")
+        .unwrap();
+    let joystick = Recommended::load(&dir).unwrap().joystick;
+    assert_eq!(joystick.executor, Some(dir.join("runs/executor")), "joined to the model directory, tidied");
+    assert_eq!(joystick.control(flowmimic_model::Gradient::ThroughNetwork, 1.0).unwrap().executor_residual, 0.25);
+    std::fs::write(&file, "[walk]\nexecutor_residual = 2.0\n").unwrap();
+    let err = Recommended::load(&dir).unwrap_err().to_string();
+    assert!(err.contains("[walk] executor_residual = 2"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
