@@ -452,7 +452,9 @@ fn a_newcomers_mistakes_get_clear_answers() {
         &["run", "--executor", executor.to_str().unwrap(), "--executor-residual", "-1"],
         &["-1", "share from 0 to 1"],
     );
-    let unused = ok(&dir, &["run", "--executor-residual", "0.5", "--seconds", "0.2", "-o", "x.rollout.safetensors"]);
+    let cosine = experts.join("../models/fm-cosine");
+    let plain = ["run", "--model", cosine.to_str().unwrap(), "--seconds", "0.2", "-o", "x.rollout.safetensors"];
+    let unused = ok(&dir, &[&plain[..], &["--executor-residual", "0.5"]].concat());
     assert!(unused.contains("not used without an executor"), "{unused}");
     // A model's recommended executor is taken, and `none` turns it off.
     let walks = experts.join("../models/fm-walks");
