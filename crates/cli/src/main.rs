@@ -156,7 +156,7 @@ enum Command {
     /// Drive the humanoid with a trained model, optionally steered by a task (joystick, reach,
     /// waypoint, or walk-to-a-point-while-reaching). Settings left out (NFE, guidance scale,
     /// adaptive guidance, inverse dynamics, acceleration, approach, guidance interval, start
-    /// actions) come from the model directory's recommended.toml for the task, and each is
+    /// actions, executor) come from the model directory's recommended.toml for the task, and each is
     /// printed with its source. Writes the rollout (states, actions, commands, timings) for
     /// `flowmimic eval` and the viewers, and prints what the task achieved.
     Run(run::RunArgs),

@@ -596,8 +596,10 @@ pub struct ExecutorArgs {
     /// Execute each plan with this tracking policy (a `track train` run on `track plan-clips`'
     /// clips) in place of the plan's own action: it steers the body back to the plan's next
     /// state after a push. An executor suits the plans of the model whose data its clips'
-    /// expert made: pretrained/experts/executor-walks executes fm-walks' plans. `none`: the
-    /// plan's own action (default: the model's recommended.toml for the task, else none).
+    /// expert made: pretrained/experts/executor-fm executes fm's plans, executor-walks
+    /// fm-walks', and each model's recommended.toml names its own for walking and the joystick
+    /// (not for play). `none`: the plan's own action (default: the model's recommended.toml for
+    /// the task, else none).
     #[arg(long, value_name = "RUN|none")]
     pub executor: Option<PathBuf>,
     /// How much of the executor's residual (the correction it adds to each plan's action) is

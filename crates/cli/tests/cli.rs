@@ -447,6 +447,7 @@ fn a_newcomers_mistakes_get_clear_answers() {
     refused(&["run", "--executor", ahead.to_str().unwrap(), "--seconds", "0.2"], &["stand-ahead", "ahead"]);
     let model = experts.join("../models/fm");
     refused(&["eval", "survival", "--trials", "1", "--executor", model.to_str().unwrap()], &["not a tracking run"]);
+    refused(&["run", "--executor", "nowhere", "--seconds", "0.2"], &["executor nowhere", "no such tracking run"]);
     let executor = experts.join("executor-walks");
     refused(
         &["run", "--executor", executor.to_str().unwrap(), "--executor-residual", "-1"],

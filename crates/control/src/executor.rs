@@ -34,6 +34,13 @@ impl Executor {
     /// The policy of a tracking run's `policy.safetensors` (a run directory or the file).
     pub fn load(path: &Path) -> Result<Self, ControlError> {
         let file = policy_file(path);
+        if !path.exists() {
+            return Err(ControlError::Start(format!(
+                "executor {}: no such tracking run (an executor is a `flowmimic track train` run, such as \
+                 pretrained/experts/executor-fm)",
+                path.display()
+            )));
+        }
         if path.is_dir() && !file.exists() {
             return Err(ControlError::Start(format!(
                 "executor {}: not a tracking run (no {POLICY_FILE}); an executor is a `flowmimic track train` run on \
