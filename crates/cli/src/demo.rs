@@ -2,9 +2,9 @@
 //! left, turn right, backward), then reaches with its right hand while walking; rollouts, plots
 //! and metrics in one command.
 
-use crate::run::{DriveArgs, load_model, recommended, start_clip};
+use crate::run::{DriveArgs, load_model, start_clip};
 use anyhow::Result;
-use flowmimic_control::recommended::Settings;
+use flowmimic_control::recommended::{Recommended, Settings};
 use flowmimic_control::{Hand, HeadingHold, JoystickSegment, Rollout, Task};
 use flowmimic_eval::protocols::{SEGMENT_SETTLE, joystick_trial, yaw_rates};
 use flowmimic_plot::{Chart, Series};
@@ -50,14 +50,14 @@ pub fn run(model_dir: &Path, out: &Path, drive: &DriveArgs, humanoid: &Arc<Human
     let name = model_dir.display().to_string();
     eprintln!("{} model from {name} (H {})", model.objective.label(), model.layout().spec.horizon);
     // The demo's own guidance, with the model's executor for the joystick where it has one.
-    let model_joystick = recommended(model_dir, "joystick")?;
+    let settings = Recommended::load(model_dir)?;
     let demo_joystick = Settings {
-        executor: model_joystick.executor,
-        executor_residual: model_joystick.executor_residual,
+        executor: settings.joystick.executor,
+        executor_residual: settings.joystick.executor_residual,
         ..DEMO_JOYSTICK
     };
     let joystick = drive.choose_over(&demo_joystick, "demo", "joystick")?;
-    let reach = drive.choose(&recommended(model_dir, "reach")?, "reach")?;
+    let reach = drive.choose(&settings.reach, "reach")?;
 
     // 1. Joystick: forward, turn left, turn right, backward.
     let task = schedule();
