@@ -212,6 +212,9 @@ pub struct Summary {
     pub dir: String,
     pub objective: String,
     pub horizon: usize,
+    /// The tracking run that executed the plans and the share of its residual added; `None`:
+    /// the plans' own actions. Part of the point, so runs with and without one stay apart.
+    pub executor: Option<ExecutorSummary>,
     /// NFE, scale, seed and every other sampler setting.
     #[serde(flatten)]
     pub point: Point,
@@ -222,6 +225,13 @@ pub struct Summary {
     pub median: BTreeMap<String, f64>,
 }
 
+/// The executor of a [`Summary`]'s point.
+#[derive(serde::Serialize)]
+pub struct ExecutorSummary {
+    pub run: String,
+    pub residual: f32,
+}
+
 pub fn summary(m: &EvalModel, point: Point, rows: &[Vec<f64>], columns: &[&str]) -> Summary {
     let s = summarise(rows, columns);
     Summary {
@@ -229,6 +239,10 @@ pub fn summary(m: &EvalModel, point: Point, rows: &[Vec<f64>], columns: &[&str])
         dir: m.dir.display().to_string(),
         objective: m.model.objective.name().into(),
         horizon: m.model.layout().spec.horizon,
+        executor: m
+            .executor
+            .as_ref()
+            .map(|(run, _, residual)| ExecutorSummary { run: run.display().to_string(), residual: *residual }),
         point,
         trials: rows.len(),
         mean: s.iter().map(|(k, v)| (k.clone(), v.0)).collect(),
@@ -456,12 +470,13 @@ mod tests {
 
     #[test]
     fn the_json_summary_keeps_earlier_points_and_replaces_those_measured_again() {
-        use super::{Point, Summary};
+        use super::{ExecutorSummary, Point, Summary};
         let summary = |scale: f32, rmse: f64| Summary {
             model: "fm".into(),
             dir: "m".into(),
             objective: "fm".into(),
             horizon: 16,
+            executor: None,
             point: Point {
                 nfe: 5,
                 scale,
@@ -487,6 +502,15 @@ mod tests {
         let points: Vec<(f64, f64)> =
             second.iter().map(|p| (p["scale"].as_f64().unwrap(), p["mean"]["rmse"].as_f64().unwrap())).collect();
         assert_eq!(points, [(0.0, 0.8), (50.0, 0.4), (100.0, 0.3)]);
+        // The same point with an executor is another point: neither replaces the other.
+        let executed = Summary {
+            executor: Some(ExecutorSummary { run: "executor-fm".into(), residual: 0.5 }),
+            ..summary(50.0, 0.35)
+        };
+        let third = super::merged_summaries(Some(&serde_json::to_string(&second).unwrap()), &[executed]).unwrap();
+        assert_eq!(third.len(), 4);
+        assert_eq!(third[3]["executor"]["residual"].as_f64(), Some(0.5));
+        assert!(third[1]["executor"].is_null());
         assert_eq!(super::merged_summaries(Some("not json"), &[summary(0.0, 0.8)]).unwrap().len(), 1);
     }
 }
