@@ -238,7 +238,8 @@ impl DriveArgs {
         let config = settings.control(g.gradient, 0.0).map_err(|e| anyhow::anyhow!("{e} (from flags or the model)"))?;
         if config.executor.is_some() && config.executor_residual == 0.0 {
             eprintln!(
-                "note: executor residual 0 executes the plans' own actions, with the executor's policy still run                  every step; --executor none does the same without it"
+                "note: executor residual 0 executes the plans' own actions, with the executor's policy still run every \
+                 step; --executor none does the same without it"
             );
         }
         Ok(Chosen {

@@ -465,6 +465,11 @@ fn a_newcomers_mistakes_get_clear_answers() {
     let off =
         ok(&dir, &["run", "--model", walks, "--executor", "none", "--seconds", "0.2", "-o", "x.rollout.safetensors"]);
     assert!(off.contains("executor none (flag)") && !off.contains("plans executed by"), "{off}");
+    let zero = ok(
+        &dir,
+        &["run", "--model", walks, "--executor-residual", "0", "--seconds", "0.2", "-o", "x.rollout.safetensors"],
+    );
+    assert!(zero.contains("residual 0 executes the plans' own actions"), "{zero}");
     // An expert of clips is a valid policy, but not an executor: said, not refused.
     let expert = experts.join("walks-pushes");
     let noted =
