@@ -182,16 +182,9 @@ impl Recommended {
     /// The settings of the task named `task` (`walk`, `joystick`, `reach`, `waypoint`,
     /// `compose`, `play`); none for another name.
     pub fn for_task(&self, task: &str) -> Settings {
-        let settings = match task {
-            "walk" => &self.walk,
-            "joystick" => &self.joystick,
-            "reach" => &self.reach,
-            "waypoint" => &self.waypoint,
-            "compose" => &self.compose,
-            "play" => &self.play,
-            _ => return Settings::default(),
-        };
-        settings.clone()
+        // A copy, so that the names are read from the one table `tasks_mut` keeps.
+        let mut all = self.clone();
+        all.tasks_mut().into_iter().find(|(name, _)| *name == task).map(|(_, s)| std::mem::take(s)).unwrap_or_default()
     }
 }
 
