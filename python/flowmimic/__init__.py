@@ -112,11 +112,11 @@ class Controller(_flowmimic.Controller):
     """The guided controller over `envs` simulated humanoids, as `flowmimic run` drives them.
 
     Settings not given (`nfe`, `guidance_scale`, `adaptive`, `inverse_dynamics`,
-    `acceleration`, `guidance_interval`, `approach`) come from the model's recommended ones for `task`
+    `acceleration`, `label_scale`, `guidance_interval`, `approach`) come from the model's recommended ones for `task`
     (`walk`, `joystick`, `reach`, `waypoint`, `compose`, `play`), else the defaults."""
 
     def __new__(cls, model: Model, envs: int = 1, task: str = "walk", clip: Optional[Clip] = None, seed: int = 0, **settings: Any):
-        known = {"nfe", "guidance_scale", "adaptive", "inverse_dynamics", "acceleration", "guidance_interval", "approach"}
+        known = {"nfe", "guidance_scale", "adaptive", "inverse_dynamics", "acceleration", "label_scale", "guidance_interval", "approach"}
         unknown = set(settings) - known
         if unknown:
             raise TypeError(f"unknown settings {sorted(unknown)}; known: {sorted(known)}")

@@ -104,12 +104,19 @@ impl Model {
         self.inner.layout().cond_len()
     }
 
-    /// The task labels that end a conditioning row, in order, for a model told each window's
-    /// task (a one-hot; all zeros says none); empty for a model without them.
+    /// The label entries that end a conditioning row, in order: for a model told each
+    /// window's task, the tasks (a one-hot); for one told each window's motion, `given`, then
+    /// `forward`, `left` (m/s) and `yaw_rate` (rad/s); all zeros says none. Empty for a model
+    /// without labels.
     #[getter]
     fn task_labels(&self) -> Vec<String> {
+        let config = &self.inner.config;
+        if config.command_labels {
+            return ["given", "forward", "left", "yaw_rate"].map(String::from).to_vec();
+        }
         let name = |l: &TaskLabel| serde_json::to_value(l).ok().and_then(|v| v.as_str().map(String::from));
-        TaskLabel::ALL[..self.inner.layout().labels].iter().filter_map(name).collect()
+        let labels = if config.task_labels { &TaskLabel::ALL[..] } else { &[] };
+        labels.iter().filter_map(name).collect()
     }
 
     /// Length of one sampled future: actions and states, H steps.
@@ -211,7 +218,7 @@ struct Controller {
 #[pymethods]
 impl Controller {
     /// `settings_json`: settings over the model's recommended ones for `task` (JSON of
-    /// `nfe`, `guidance_scale`, `adaptive`, `inverse_dynamics`, `acceleration`,
+    /// `nfe`, `guidance_scale`, `adaptive`, `inverse_dynamics`, `acceleration`, `label_scale`,
     /// `guidance_interval`, `approach`, `start_actions`, `executor`, `executor_residual`).
     #[new]
     #[pyo3(signature = (model, envs = 1, task = "walk", settings_json = None, clip = None, seed = 0))]

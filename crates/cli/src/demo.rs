@@ -24,6 +24,7 @@ const DEMO_JOYSTICK: Settings = Settings {
     adaptive: Some(0.0),
     inverse_dynamics: Some(0.2),
     acceleration: None,
+    label_scale: None,
     guidance_interval: None,
     approach: None,
     start_actions: None,

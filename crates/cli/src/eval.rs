@@ -242,6 +242,7 @@ fn load_models(common: &Common, drive: &DriveArgs, task: &str) -> Result<Vec<Eva
                 adaptive: chosen.adaptive,
                 inverse_dynamics: chosen.inverse_dynamics,
                 acceleration: chosen.acceleration,
+                label_scale: chosen.label_scale,
                 start_actions: chosen.start_actions,
                 approach: chosen.approach,
             };

@@ -49,7 +49,14 @@ pub fn train(
     let layout = humanoid_layout(&model);
     let stats = Stats::of_dataset(&dataset, layout.spec)?;
     let started = Instant::now();
-    let data = WindowSet::from_dataset(&dataset, layout, &stats, cfg.validation_fraction, &cfg.reach_clips)?;
+    let data = WindowSet::from_dataset(
+        &dataset,
+        layout,
+        &stats,
+        cfg.validation_fraction,
+        &cfg.reach_clips,
+        model.label_steps(),
+    )?;
     eprintln!(
         "{}: {} training and {} validation windows (history {}, horizon {}) in {:.1} s",
         dataset.dir.display(),
@@ -59,10 +66,19 @@ pub fn train(
         layout.spec.horizon,
         started.elapsed().as_secs_f64()
     );
-    if layout.labels > 0 {
+    let dropped = 100.0 * cfg.label_dropout;
+    if model.task_labels {
         let ((clips, share), all) = (data.reach(), dataset.manifest.shards.len());
         let share = 100.0 * share;
-        eprintln!("task labels: reach on {clips} of {all} clips ({share:.0}% of training windows), walk on the rest");
+        eprintln!(
+            "task labels: reach on {clips} of {all} clips ({share:.0}% of training windows), walk on the rest; left out in {dropped:.0}%"
+        );
+    }
+    if model.command_labels {
+        let steps = model.label_steps();
+        eprintln!(
+            "command labels: each window's motion (forward, left, yaw rate) over the {steps} steps after it; left out in {dropped:.0}%"
+        );
     }
     let fresh = Trainer::new(
         TrajectoryModel::new(layout, model, objective, stats, cfg.seed),

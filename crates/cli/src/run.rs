@@ -10,7 +10,7 @@ use flowmimic_control::{
 use flowmimic_eval::HAND_REACHED;
 use flowmimic_eval::outcome::{BEFORE_FALL, FOLLOWED_SPEED, FOLLOWED_YAW_RATE, Outcome};
 use flowmimic_eval::protocols::{SEGMENT_SETTLE, setting_name};
-use flowmimic_model::{Gradient, TrajectoryModel};
+use flowmimic_model::{Gradient, Label, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_serve::play::PlayConfig;
 use flowmimic_sim::{Humanoid, Obstacle};
@@ -137,6 +137,13 @@ pub struct GuidanceArgs {
     /// recommended.toml for the task, else 0).
     #[arg(long, allow_negative_numbers = true, value_name = "M_PER_S2")]
     pub acceleration: Option<f32>,
+    /// For a model trained with labels (`[model] command_labels`: told the joystick's command
+    /// or a waypoint's pursuit): how much the label weighs, by classifier-free guidance. 0: as
+    /// if told nothing (the baseline the guidance scale's 0 is for other models), 1: as told
+    /// (default: the model's recommended.toml for the task, else 1), above 1: past it, at two
+    /// network calls a step.
+    #[arg(long, allow_negative_numbers = true, value_name = "S")]
+    pub label_scale: Option<f32>,
     /// The actions in the model's first history (the steps before the start frame, which the
     /// first plan is conditioned on; a clip holds poses only): pd-targets, each next frame's
     /// joint angles, or inverse-dynamics, what the model directory's inverse.safetensors reads
@@ -157,6 +164,7 @@ pub struct Chosen {
     pub adaptive: Option<Adaptive>,
     pub inverse_dynamics: f32,
     pub acceleration: f32,
+    pub label_scale: f32,
     pub guidance_interval: Option<(usize, usize)>,
     pub approach: bool,
     pub start_actions: StartActions,
@@ -200,6 +208,10 @@ impl DriveArgs {
             pick("guidance steps", interval(g.guidance_interval), interval(model_interval), "all but the last quarter");
             pick("approach", self.approach.map(|a| a.to_string()), model.approach.map(|a| a.to_string()), "false");
         }
+        // Only a labelled model has a label to weigh: named where a flag or the model sets it.
+        if g.label_scale.is_some() || model.label_scale.is_some() {
+            pick("label scale", fmt(g.label_scale), fmt(model.label_scale), "1");
+        }
         let start = |a: Option<StartActions>| a.map(|a| setting_name(&a));
         pick("start actions", start(g.start_actions), start(model.start_actions), "pd-targets");
         let flag_executor = g.execution.executor();
@@ -224,6 +236,7 @@ impl DriveArgs {
             adaptive: g.adaptive,
             inverse_dynamics: g.inverse_dynamics,
             acceleration: g.acceleration,
+            label_scale: g.label_scale,
             guidance_interval: g.guidance_interval.map(|(a, b)| [a, b]),
             approach: self.approach,
             start_actions: g.start_actions,
@@ -248,6 +261,7 @@ impl DriveArgs {
             adaptive: config.adaptive,
             inverse_dynamics: config.inverse_dynamics,
             acceleration: config.acceleration,
+            label_scale: config.label_scale,
             guidance_interval: config.guidance_steps,
             approach: settings.approaches(),
             start_actions: config.start_actions,
@@ -266,6 +280,7 @@ impl Chosen {
             adaptive: self.adaptive,
             inverse_dynamics: self.inverse_dynamics,
             acceleration: self.acceleration,
+            label_scale: self.label_scale,
             start_actions: self.start_actions,
             executor: self.executor.clone(),
             executor_residual: self.executor_residual,
@@ -539,12 +554,17 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     let out = args.out.clone().unwrap_or_else(|| PathBuf::from("runs/run").join(format!("{name}.rollout.safetensors")));
     // A task that asks nothing (unguided walking) is not guided, whatever the scale.
     let guidance = if args.task == TaskKind::Walk || control.guidance_scale == 0.0 {
-        "unguided".to_string()
+        // A model told the command is steered by it without a guidance gradient.
+        if model.config.command_labels && args.task != TaskKind::Walk { "no guidance gradient" } else { "unguided" }
+            .to_string()
     } else {
         format!("guidance {} on steps {:?}", control.guidance_scale, control.guidance_steps())
     };
-    let label =
-        if model.config.task_labels { format!(", task label {}", setting_name(&task.label())) } else { String::new() };
+    let label = match task.label(&model.config, None) {
+        Some(Label::Task(l)) => format!(", task label {}", setting_name(&l)),
+        _ if model.config.command_labels => ", told the command".to_string(),
+        _ => String::new(),
+    };
     let executed = control
         .executor
         .as_ref()

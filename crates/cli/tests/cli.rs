@@ -109,6 +109,16 @@ fn task_labelled_model_trains_and_drives(dir: &Path) {
             ok(dir, &["run", "--model", "labelled", "--task", task, "--seconds", "0.3", "--envs", "2", "-o", &out]);
         assert!(run.contains("environments fell") && run.contains(told), "{run}");
     }
+    // A model told each window's motion, driven told the joystick's command at twice its
+    // weight (classifier-free guidance, two network calls a step).
+    std::fs::write(dir.join("commands.toml"), "[model]\ncommand_labels = true\n").unwrap();
+    let args =
+        ["--config", "commands.toml", "train", "data-v", "--objective", "fm", "-o", "commanded", "--steps", "20"];
+    let trained = ok(dir, &args);
+    assert!(trained.contains("command labels: each window's motion"), "{trained}");
+    let args = ["run", "--model", "commanded", "--task", "joystick", "--label-scale", "2", "--seconds", "0.3"];
+    let run = ok(dir, &[&args[..], &["--envs", "2", "-o", "commanded.rollout.safetensors"]].concat());
+    assert!(run.contains("told the command") && run.contains("label scale 2 (flag)"), "{run}");
 }
 
 /// `train` and `run` on the tiny dataset that `collect` wrote.
@@ -476,6 +486,7 @@ fn a_newcomers_mistakes_get_clear_answers() {
         ok(&dir, &["run", "--executor", expert.to_str().unwrap(), "--seconds", "0.2", "-o", "x.rollout.safetensors"]);
     assert!(noted.contains("not trained as one"), "{noted}");
     refused(&["run", "--acceleration", "-1", "--seconds", "0.2"], &["acceleration = -1", "0 or more"]);
+    refused(&["run", "--label-scale", "2", "--seconds", "0.2"], &["label scale 2", "no labels"]);
     // Files of the wrong kind.
     std::fs::write(dir.join("picture.png"), b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR").unwrap();
     refused(&["motion", "import", "picture.png"], &["picture.png", "not a BVH or DeepMimic", "PNG image"]);

@@ -83,6 +83,12 @@ pub struct ControlConfig {
     /// ([`SpeedRamp`]); 0: the command as given (the paper).
     #[serde(default)]
     pub acceleration: f32,
+    /// For a labelled model ([`flowmimic_model::Label`]): how much its label, the command it is
+    /// told, weighs in each sample, by classifier-free guidance: 0 as if told nothing, 1 as
+    /// told, above 1 past it (two network calls a step). Rollouts saved before the setting
+    /// existed were told (1).
+    #[serde(default = "as_told")]
+    pub label_scale: f32,
     /// The actions of the history an episode starts with ([`start_from_clip`]).
     #[serde(default)]
     pub start_actions: StartActions,
@@ -108,6 +114,10 @@ fn all_of_the_residual() -> f32 {
     1.0
 }
 
+fn as_told() -> f32 {
+    1.0
+}
+
 impl ControlConfig {
     /// `nfe` solver steps at guidance scale `guidance_scale` (0: unguided) for `seconds`; the
     /// rest plain: gradient through the network, the default interval, the paper's receding
@@ -123,6 +133,7 @@ impl ControlConfig {
             execute: 1,
             inverse_dynamics: 0.0,
             acceleration: 0.0,
+            label_scale: 1.0,
             start_actions: StartActions::PdTargets,
             executor: None,
             executor_residual: DEFAULT_RESIDUAL,
@@ -266,6 +277,15 @@ pub fn check_sampler(model: &TrajectoryModel, config: &ControlConfig) -> Result<
     if !(config.acceleration.is_finite() && config.acceleration >= 0.0) {
         let value = f64::from(config.acceleration);
         return Err(ControlError::BadCommand { what: "joystick acceleration (m/s^2, 0 for none)", value });
+    }
+    let scale = config.label_scale;
+    if !(scale.is_finite() && scale >= 0.0) {
+        return Err(ControlError::BadCommand { what: "label scale (0 or more)", value: f64::from(scale) });
+    }
+    if scale != 1.0 && model.layout().labels == 0 {
+        return Err(ControlError::Sampler(format!(
+            "label scale {scale}: the model has no labels to weigh (it is trained without [model] command_labels or task_labels)"
+        )));
     }
     let residual = config.executor_residual;
     if !(0.0..=1.0).contains(&residual) {
@@ -435,8 +455,6 @@ impl<'m> Controller<'m> {
             let mut costs: Vec<Option<crate::Sum>> = Vec::with_capacity(replan.len());
             let mut frames = Vec::with_capacity(replan.len());
             for &e in &replan {
-                let (states, actions) = self.histories[e].conditioning();
-                cond.extend(layout.conditioning(&states, &actions, Some(tasks[e].label())));
                 let b = self.envs[e].bodies();
                 let frame = CharFrame::from_root(b.pos[0], b.rot[0]);
                 let segment = tasks[e].joystick_at(time);
@@ -447,6 +465,9 @@ impl<'m> Controller<'m> {
                         .then(|| self.ramps[e].velocity(segment, time, acceleration))
                         .flatten(),
                 };
+                let (states, actions) = self.histories[e].conditioning();
+                let label = tasks[e].label(&model.config, tasks[e].pelvis_command(time, &frame, steer)?);
+                cond.extend(layout.conditioning(&states, &actions, label));
                 let cost = tasks[e].cost(traj, time, &frame, steer)?;
                 let factor =
                     self.config.adaptive.map_or(1.0, |a| a.factor(tasks[e].executed_error(time, &self.recent[e])));
@@ -463,7 +484,14 @@ impl<'m> Controller<'m> {
                 steps: g0..g1,
                 gradient: self.config.gradient,
             });
-            let mut futures = model.sample(&cond, replan.len(), self.config.nfe, guidance.as_ref(), &mut self.rng);
+            let mut futures = model.sample_told(
+                &cond,
+                replan.len(),
+                self.config.nfe,
+                self.config.label_scale,
+                guidance.as_ref(),
+                &mut self.rng,
+            );
             let len = traj.len();
             if self.config.inverse_dynamics > 0.0 {
                 blend_inverse_dynamics(model, self.config.inverse_dynamics, &cond, &mut futures);

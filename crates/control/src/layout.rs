@@ -4,7 +4,7 @@
 //! in physical units (the model's normalisation undone).
 
 use flowmimic_sim::state::offset;
-use flowmimic_sim::{CONTROL_HZ, NUM_DOFS, STATE_DIM};
+use flowmimic_sim::{NUM_DOFS, STATE_DIM};
 
 /// The layout of a trajectory of horizon H.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -65,23 +65,15 @@ impl Layout {
         ([tau[p] + rotated[0], tau[p + 1] + rotated[1], tau[p + 2] + tau[at + 2]], rotated)
     }
 
-    /// What plan `tau` asks of the body: its mean root velocity over the horizon, each state's
-    /// in its own heading (forward, left; m/s), and its heading's rate of change (rad/s, the
-    /// least-squares slope through the heading at the current step, 0). The same three numbers
-    /// as the body's achieved ones: set beside them, they tell a model that plans the wrong
-    /// motion from an executed action that misses a right plan.
+    /// What plan `tau` asks of the body ([`flowmimic_data::motion`] of its states): set
+    /// beside the body's achieved motion, it tells a model that plans the wrong motion from an
+    /// executed action that misses a right plan.
     pub fn intent(&self, tau: &[f32]) -> [f32; 3] {
-        let ks = 1..=self.horizon;
-        let yaw = |k: usize| tau[self.root_rot(k) + 2];
-        let (mut forward, mut left) = (0.0, 0.0);
-        for k in ks.clone() {
-            let (s, c) = yaw(k).sin_cos();
-            let v = self.root_vel(k);
-            forward += c * tau[v] + s * tau[v + 1];
-            left += c * tau[v + 1] - s * tau[v];
-        }
-        let h = self.horizon as f32;
-        let slope = ks.clone().map(|k| k as f32 * yaw(k)).sum::<f32>() / ks.map(|k| (k * k) as f32).sum::<f32>();
-        [forward / h, left / h, slope * CONTROL_HZ as f32]
+        flowmimic_data::motion((1..=self.horizon).map(|k| {
+            // Each state's velocity, in the current frame, turned into its own heading.
+            let (yaw, v) = (tau[self.root_rot(k) + 2], self.root_vel(k));
+            let (s, c) = yaw.sin_cos();
+            ([c * tau[v] + s * tau[v + 1], c * tau[v + 1] - s * tau[v]], yaw)
+        }))
     }
 }

@@ -39,6 +39,8 @@ pub struct Settings {
     pub guidance_interval: Option<[usize; 2]>,
     /// Walk up to a hand target (reach and compose).
     pub approach: Option<bool>,
+    /// How much a labelled model's label weighs (classifier-free guidance): 0 untold, 1 told.
+    pub label_scale: Option<f32>,
     /// The actions of the history an episode starts with.
     pub start_actions: Option<StartActions>,
     /// A tracking run that executes the plans: relative to the model directory in the file,
@@ -78,6 +80,7 @@ impl Settings {
             acceleration: self.acceleration.or(under.acceleration),
             guidance_interval: self.guidance_interval.or(under.guidance_interval),
             approach: self.approach.or(under.approach),
+            label_scale: self.label_scale.or(under.label_scale),
             start_actions: self.start_actions.or(under.start_actions),
             executor: self.executor.clone().or_else(|| under.executor.clone()),
             executor_residual: self.executor_residual.or(under.executor_residual),
@@ -91,7 +94,7 @@ impl Settings {
 
     /// The controller's settings for `seconds`, the defaults where absent ([`DEFAULT_NFE`],
     /// [`DEFAULT_SCALE`], the fixed scale, no inverse dynamics, the command's speed as given,
-    /// the default guidance interval, a start in PD targets, no executor).
+    /// a label as told, the default guidance interval, a start in PD targets, no executor).
     pub fn control(
         &self,
         gradient: flowmimic_model::Gradient,
@@ -105,6 +108,7 @@ impl Settings {
             adaptive: reference.map(Adaptive::new).transpose()?,
             inverse_dynamics: self.inverse_dynamics.unwrap_or(0.0),
             acceleration: self.acceleration.unwrap_or(0.0),
+            label_scale: self.label_scale.unwrap_or(1.0),
             start_actions: self.start_actions.unwrap_or_default(),
             executor: self.executor.clone(),
             executor_residual: self.executor_residual.unwrap_or(crate::executor::DEFAULT_RESIDUAL),
@@ -133,6 +137,9 @@ impl Settings {
         }
         if let Some(a) = self.acceleration.filter(|a| !(a.is_finite() && *a >= 0.0)) {
             return bad("acceleration", format!("{a}: m/s^2, 0 or more (0 for the command as given)"));
+        }
+        if let Some(s) = self.label_scale.filter(|s| !(s.is_finite() && *s >= 0.0)) {
+            return bad("label_scale", format!("{s}: 0 or more (0 untold, 1 told)"));
         }
         if let Some(r) = self.executor_residual.filter(|r| !(0.0..=1.0).contains(r)) {
             return bad("executor_residual", format!("{r}: a share from 0 to 1"));

@@ -6,6 +6,7 @@ use crate::costs::{Heading, Joystick, Pursuit, Reach, Sum};
 use crate::obstacles::{Avoid, in_frame, world_detour};
 use crate::{ControlError, Layout};
 use flowmimic_geom::{CharFrame, DVec3, wrap_angle};
+use flowmimic_model::{Label, ModelConfig, TaskLabel};
 use flowmimic_sim::Obstacle;
 use flowmimic_sim::skeleton::body;
 use serde::{Deserialize, Serialize};
@@ -81,9 +82,15 @@ pub struct Task {
 pub const COMMAND_DIM: usize = 8;
 
 impl Task {
-    /// What a model with task labels is told the task does: with a hand target, reach.
-    pub fn label(&self) -> flowmimic_model::TaskLabel {
-        if self.reach.is_some() { flowmimic_model::TaskLabel::Reach } else { flowmimic_model::TaskLabel::Walk }
+    /// What `model` is told the task does: with task labels, reach with a hand target and walk
+    /// without; with command labels, `command`, what it asks of the pelvis
+    /// ([`Task::pelvis_command`]; nothing asked: not said); without labels, nothing.
+    pub fn label(&self, model: &ModelConfig, command: Option<[f64; 3]>) -> Option<Label> {
+        if model.command_labels {
+            return command.map(|c| Label::Command(c.map(|v| v as f32)));
+        }
+        let task = if self.reach.is_some() { TaskLabel::Reach } else { TaskLabel::Walk };
+        model.task_labels.then_some(Label::Task(task))
     }
 
     /// How far from its waypoint the pelvis may stand to bring the hand to its target, when the
@@ -196,10 +203,7 @@ impl Task {
     ) -> Result<Option<Sum>, ControlError> {
         let mut sum = Sum::default();
         let [wj, wt, wr, ww] = self.weights;
-        if let Some(s) = self.joystick_at(time) {
-            let rate =
-                (s.yaw_rate + steer.heading_lag / HeadingHold::CATCH_UP).clamp(-Heading::MAX_RATE, Heading::MAX_RATE);
-            let [vx, vy] = steer.velocity.unwrap_or([s.vx, s.vy]);
+        if let Some([vx, vy, rate]) = self.joystick_command(time, steer) {
             sum = sum.with(wj, Joystick::turning(layout, vx, vy, rate)?);
             sum = sum.with(wt, Heading::new(layout, rate)?);
         }
@@ -211,8 +215,7 @@ impl Task {
                 sum = sum.with(wr, Reach::world(layout, hand.body(), target, frame)?);
             }
         }
-        if let Some(goal) = self.pelvis_goal(frame, time) {
-            let to = Pursuit::world(goal, frame)?;
+        if let Some(to) = self.pursuit(frame, time)? {
             sum = sum.with(ww, Joystick::turning(layout, to.speed, to.lateral, to.yaw_rate)?);
             sum = sum.with(ww, Heading::new(layout, to.yaw_rate)?);
         }
@@ -220,6 +223,32 @@ impl Task {
             sum = sum.with(ww * Avoid::WEIGHT, Avoid::new(layout, in_frame(&self.obstacles, frame, time))?);
         }
         Ok((!sum.terms.is_empty()).then_some(sum))
+    }
+
+    /// The motion the task asks of the pelvis at `time` (forward, left, m/s; yaw rate, rad/s):
+    /// the joystick's, shaped by `steer`, else the pursuit of its waypoint (or of the point
+    /// that brings the hand to its target); `None` when it asks neither.
+    pub fn pelvis_command(&self, time: f64, frame: &CharFrame, steer: Steer) -> Result<Option<[f64; 3]>, ControlError> {
+        if let Some(c) = self.joystick_command(time, steer) {
+            return Ok(Some(c));
+        }
+        Ok(self.pursuit(frame, time)?.map(|to| [to.speed, to.lateral, to.yaw_rate]))
+    }
+
+    /// The joystick's command at `time` as guidance asks it: the velocity `steer` ramps, the
+    /// turn rate with the heading's lag asked back.
+    fn joystick_command(&self, time: f64, steer: Steer) -> Option<[f64; 3]> {
+        self.joystick_at(time).map(|s| {
+            let rate =
+                (s.yaw_rate + steer.heading_lag / HeadingHold::CATCH_UP).clamp(-Heading::MAX_RATE, Heading::MAX_RATE);
+            let [vx, vy] = steer.velocity.unwrap_or([s.vx, s.vy]);
+            [vx, vy, rate]
+        })
+    }
+
+    /// The pursuit command toward [`Task::pelvis_goal`], when there is one.
+    fn pursuit(&self, frame: &CharFrame, time: f64) -> Result<Option<Pursuit>, ControlError> {
+        self.pelvis_goal(frame, time).map(|goal| Pursuit::world(goal, frame)).transpose()
     }
 
     /// Whether guidance keeps clear of obstacles (there are some, and the task is not blind).

@@ -297,3 +297,32 @@ fn a_planned_body_is_read_into_the_current_frame() {
     let near = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-6);
     assert!(near(&hand, &[1.0, 0.7, 1.1]) && near(&rotated, &[0.0, 0.2]), "{hand:?} {rotated:?}");
 }
+
+/// A model with command labels is told what guidance asks of the pelvis: the joystick's
+/// command as ramped and held, or a waypoint's pursuit; a model with task labels whether the
+/// task reaches; a model without labels nothing.
+#[test]
+fn a_labelled_model_is_told_what_guidance_asks_of_the_pelvis() {
+    use flowmimic_model::{Label, ModelConfig, TaskLabel};
+    let frame = CharFrame::new(DVec3::new(1.0, 2.0, 0.9), 0.5);
+    let seg = JoystickSegment { seconds: 3.0, vx: 1.4, vy: -0.3, yaw_rate: 0.6 };
+    let joystick = Task { joystick: vec![seg], ..Task::walk() };
+    let steer = Steer { heading_lag: 0.1, velocity: Some([0.5, -0.3]) };
+    let asked = joystick.pelvis_command(0.0, &frame, steer).unwrap().unwrap();
+    assert_eq!(asked, [0.5, -0.3, 0.6 + 0.1 / HeadingHold::CATCH_UP]);
+    let waypoint = Task { waypoint: Some([4.0, 5.0]), ..Task::walk() };
+    let to = Pursuit::world([4.0, 5.0], &frame).unwrap();
+    let pursued = waypoint.pelvis_command(0.0, &frame, Steer::default()).unwrap();
+    assert_eq!(pursued, Some([to.speed, to.lateral, to.yaw_rate]));
+    assert_eq!(Task::walk().pelvis_command(0.0, &frame, Steer::default()).unwrap(), None);
+
+    let commands = ModelConfig { command_labels: true, ..ModelConfig::default() };
+    let told = joystick.label(&commands, Some(asked));
+    assert_eq!(told, Some(Label::Command(asked.map(|v| v as f32))));
+    assert_eq!(Task::walk().label(&commands, None), None, "nothing asked, nothing said");
+    let tasks = ModelConfig { task_labels: true, ..ModelConfig::default() };
+    let reach = Task { reach: Some((Hand::Right, [1.0, 0.0, 1.2])), ..Task::walk() };
+    assert_eq!(reach.label(&tasks, None), Some(Label::Task(TaskLabel::Reach)));
+    assert_eq!(joystick.label(&tasks, Some(asked)), Some(Label::Task(TaskLabel::Walk)));
+    assert_eq!(joystick.label(&ModelConfig::default(), Some(asked)), None);
+}

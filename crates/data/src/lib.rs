@@ -11,7 +11,7 @@ pub mod window;
 
 pub use collect::{CollectConfig, CollectStats, collect};
 pub use format::{Dataset, Manifest, Shard, ShardInfo};
-pub use window::{Moments, Stats, Window, WindowSpec, window, window_starts};
+pub use window::{Moments, Stats, Window, WindowSpec, future_motion, motion, window, window_starts};
 
 #[derive(Debug, thiserror::Error)]
 pub enum DataError {

@@ -5,10 +5,10 @@
 
 use crate::DataError;
 use crate::format::{Dataset, Shard};
-use flowmimic_geom::{DVec3, from_rotvec, rotvec, yaw_quat};
+use flowmimic_geom::{DVec3, from_rotvec, rotvec, wrap_angle, yaw_quat};
 use flowmimic_io::tensors::{self, TensorFile};
 use flowmimic_sim::state::offset;
-use flowmimic_sim::{NUM_DOFS, STATE_DIM};
+use flowmimic_sim::{CONTROL_HZ, NUM_DOFS, STATE_DIM};
 use serde::{Deserialize, Serialize};
 
 /// History length N and horizon H.
@@ -36,6 +36,39 @@ impl WindowSpec {
 pub struct Window {
     pub states: Vec<f32>,
     pub actions: Vec<f32>,
+}
+
+/// The motion of a stretch of steps: the mean of their root velocities, each in its own
+/// heading (forward, left; m/s), and the heading's rate of change (rad/s, the least-squares
+/// slope through each step's heading relative to the step before the stretch, 0). Each item
+/// is a step's own-heading velocity and relative heading. The joystick's three numbers: what a
+/// plan asks of the body, and what a window's future does.
+pub fn motion(steps: impl IntoIterator<Item = ([f32; 2], f32)>) -> [f32; 3] {
+    let (mut forward, mut left, mut moment, mut squares, mut n) = (0.0, 0.0, 0.0, 0.0, 0.0);
+    for (k, ([vx, vy], yaw)) in steps.into_iter().enumerate() {
+        forward += vx;
+        left += vy;
+        let k = (k + 1) as f32;
+        moment += k * yaw;
+        squares += k * k;
+        n += 1.0;
+    }
+    [forward / n, left / n, moment / squares * CONTROL_HZ as f32]
+}
+
+/// The [`motion`] of up to `steps` steps after step `t` of a shard, as many as its episode
+/// holds (`None` where it holds none): what a model with command labels is told a window at
+/// `t` does.
+pub fn future_motion(shard: &Shard, t: usize, steps: usize) -> Option<[f32; 3]> {
+    let heading = |k: usize| shard.root_pose[3 * k + 2];
+    let ahead = (t + 1..shard.steps().min(t + 1 + steps))
+        .take_while(|&k| shard.done[k - 1] == 0 && shard.rollout[k] == shard.rollout[t]);
+    ahead.clone().next()?;
+    // A stored state's root velocity is in its own heading.
+    Some(motion(ahead.map(|k| {
+        let v = &shard.state[k * STATE_DIM + offset::ROOT_VEL..];
+        ([v[0], v[1]], wrap_angle(f64::from(heading(k) - heading(t))) as f32)
+    })))
 }
 
 /// Re-expresses the 165-d state of step k (stored in its own frame) in the frame of step t,

@@ -237,3 +237,30 @@ fn a_mirrored_shard_holds_the_mirror_images_of_the_windows_and_is_added_once() {
     assert_eq!(Dataset::open(&dir).unwrap().load_all().unwrap()[1].1, shorter.mirror_image());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A window's command label reads the steps after it within its episode: their own-heading
+/// velocity and their turn rate, with headings that wrap past pi.
+#[test]
+fn a_future_motion_is_read_within_the_episode() {
+    let steps = 12;
+    let mut shard = Shard::default();
+    for k in 0..steps {
+        let mut state = vec![0.0f32; STATE_DIM];
+        state[flowmimic_sim::state::offset::ROOT_VEL] = 0.8;
+        state[flowmimic_sim::state::offset::ROOT_VEL + 1] = -0.1;
+        shard.state.extend_from_slice(&state);
+        // Turning left at 0.6 rad/s (0.02 rad a step at 30 Hz) through pi.
+        let heading = 3.08 + 0.02 * k as f32;
+        let heading = if heading > std::f32::consts::PI { heading - std::f32::consts::TAU } else { heading };
+        shard.root_pose.extend_from_slice(&[0.0, 0.0, heading]);
+        shard.done.push(u8::from(k == 7 || k + 1 == steps));
+        shard.rollout.push(0);
+    }
+    let [forward, left, rate] = future_motion(&shard, 1, 4).unwrap();
+    assert!((forward - 0.8).abs() < 1e-6 && (left + 0.1).abs() < 1e-6 && (rate - 0.6).abs() < 1e-3, "{rate}");
+    // From step 5 the episode holds steps 6 and 7 only: the same motion over two steps.
+    let [_, _, rate] = future_motion(&shard, 5, 10).unwrap();
+    assert!((rate - 0.6).abs() < 1e-3, "{rate}");
+    // A new episode's steps are not read: step 7 ends one, so from 7 nothing lies ahead.
+    assert_eq!(future_motion(&shard, 7, 4), None);
+}

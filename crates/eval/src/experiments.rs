@@ -93,7 +93,8 @@ impl Study<'_> {
     }
 
     /// Each model at each of `scales`; none given, at its own scale, beside w 0 when
-    /// `unguided` (the protocols that compare with unguided walking).
+    /// `unguided` (the protocols that compare with unguided walking), and then, for a labelled
+    /// model, beside w 0 told nothing.
     fn by_scale(scales: &[f32], unguided: bool) -> impl Fn(&EvalModel) -> Vec<Point> {
         move |m| {
             let mut w = match (scales.is_empty(), unguided) {
@@ -102,7 +103,12 @@ impl Study<'_> {
                 (true, false) => vec![m.sampler.scale],
             };
             w.dedup();
-            w.into_iter().map(|scale| Point { scale, ..m.sampler }).collect()
+            let mut points: Vec<Point> = w.into_iter().map(|scale| Point { scale, ..m.sampler }).collect();
+            // A labelled model told its command steers at w 0: its unguided walk is told nothing.
+            if unguided && m.model.layout().labels > 0 && m.sampler.label_scale != 0.0 {
+                points.insert(0, Point { scale: 0.0, label_scale: 0.0, ..m.sampler });
+            }
+            points
         }
     }
 
@@ -256,7 +262,7 @@ impl Study<'_> {
                     "| {} | {} | {} | {:.3} ± {:.3} | {share} | {} | {:.3} | {} | {} | {:.0} / {:.0} / {:.0} / {:.0}% | {:.0}% |",
                     m.label,
                     s.horizon,
-                    s.point.scale,
+                    s.point.w(),
                     s.mean["velocity_rmse"],
                     s.std["velocity_rmse"],
                     cells(&["forward_rmse", "backward_rmse", "left_rmse", "right_rmse"], 2).join(" / "),
@@ -331,7 +337,7 @@ impl Study<'_> {
                             "| {} | {} | {} | {:.3} | {} | {} | {} | {} | {:.0}% | {:.0}% |",
                             m.label,
                             s.horizon,
-                            s.point.scale,
+                            s.point.w(),
                             s.mean["velocity_rmse"],
                             i + 1,
                             signed(&[seg.vx, seg.vy, seg.yaw_rate]),
@@ -379,7 +385,7 @@ impl Study<'_> {
                     "| {} | {} | {} | {:.3} | {:.3} | {:.3} | {:.0}% | {:.0}% |",
                     m.label,
                     s.horizon,
-                    s.point.scale,
+                    s.point.w(),
                     s.mean["mean"],
                     s.mean["rms"],
                     s.mean["min"],
@@ -471,7 +477,7 @@ impl Study<'_> {
                     "| {} | {} | {} | {:.3} | {:.0}% | {:.0}% | {median} | {:.0}% | {} / {} / {} of {:.0}% | {} / {} / {} |",
                     m.label,
                     s.horizon,
-                    s.point.scale,
+                    s.point.w(),
                     s.mean["closest"],
                     100.0 * s.mean["reached"],
                     100.0 * s.mean["planned"],
@@ -522,7 +528,7 @@ impl Study<'_> {
                 format!(
                     "| {} | {} | {:.0}% | {:.2} | {} | {:.2} | {:.0}% |",
                     m.label,
-                    s.point.scale,
+                    s.point.w(),
                     100.0 * s.mean["arrived"],
                     s.mean["closest"],
                     time_to_arrive(s),
@@ -602,7 +608,7 @@ impl Study<'_> {
                 format!(
                     "| {} | {} | {:.0}% | {:.0}% | {:.0}% | {:.0}% | {} |",
                     m.label,
-                    s.point.scale,
+                    s.point.w(),
                     100.0 * s.mean["success"],
                     100.0 * s.mean["arrived"],
                     100.0 * s.mean["contacts"],
@@ -645,7 +651,7 @@ impl Study<'_> {
                 format!(
                     "| {} | {} | {:.0}% | {:.2} | {:.2} | {:.0}% |",
                     m.label,
-                    s.point.scale,
+                    s.point.w(),
                     100.0 * s.mean["success"],
                     s.mean["pelvis_min"],
                     s.mean["hand_min"],

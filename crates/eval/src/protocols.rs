@@ -55,6 +55,9 @@ pub struct Point {
     /// The joystick velocity's most speed-up (m/s^2; 0: the command as given).
     #[serde(default)]
     pub acceleration: f32,
+    /// A labelled model's label weight (0: told nothing; 1: as told).
+    #[serde(default = "as_told")]
+    pub label_scale: f32,
     /// The actions of the history each trial starts with.
     #[serde(default)]
     pub start_actions: StartActions,
@@ -64,7 +67,20 @@ pub struct Point {
     pub approach: bool,
 }
 
+fn as_told() -> f32 {
+    1.0
+}
+
 impl Point {
+    /// The guidance scale as a table's `w` cell, with a label weight other than as told.
+    pub fn w(&self) -> String {
+        match self.label_scale {
+            1.0 => self.scale.to_string(),
+            0.0 => format!("{}, untold", self.scale),
+            s => format!("{}, label {s}", self.scale),
+        }
+    }
+
     /// The controller's settings for an episode of `seconds` at this point, without kicks.
     pub fn control(&self, seconds: f64) -> ControlConfig {
         ControlConfig {
@@ -74,6 +90,7 @@ impl Point {
             execute: self.execute,
             inverse_dynamics: self.inverse_dynamics,
             acceleration: self.acceleration,
+            label_scale: self.label_scale,
             start_actions: self.start_actions,
             seed: self.seed,
             ..ControlConfig::new(self.nfe, self.scale, seconds)
@@ -131,7 +148,10 @@ impl Bench<'_> {
         if let Some(dir) = self.rollouts {
             let file = format!(
                 "{}-{protocol}-nfe{}-w{}-seed{}.rollout.safetensors",
-                self.name, point.nfe, point.scale, point.seed
+                self.name,
+                point.nfe,
+                point.w(),
+                point.seed
             );
             let saved = std::fs::create_dir_all(dir).map_err(|e| e.to_string());
             if let Err(e) = saved.and_then(|()| r.save(&dir.join(&file)).map_err(|e| e.to_string())) {
@@ -689,8 +709,6 @@ pub fn guidance_effect(
         let mut history = History::new(layout.spec);
         let frame = controller::start_frame(bench.clip.len(), layout.spec.history, e);
         controller::start_from_clip(&mut env, &mut history, bench.clip, frame, bench.model, point.start_actions)?;
-        let (states, actions) = history.conditioning();
-        cond.extend(layout.conditioning(&states, &actions, Some(task.label())));
         let mut task = task.clone();
         if let Some((_, target)) = task.reach.as_mut() {
             let t = bench.start_to_world(e, DVec3::from_array(*target));
@@ -701,8 +719,12 @@ pub fn guidance_effect(
             *goal = [g.x, g.y];
         }
         let b = env.bodies();
+        let frame = CharFrame::from_root(b.pos[0], b.rot[0]);
         // The command has just begun: the walker is on its heading.
-        let cost = task.cost(traj, 0.0, &CharFrame::from_root(b.pos[0], b.rot[0]), Steer::default())?;
+        let label = task.label(&bench.model.config, task.pelvis_command(0.0, &frame, Steer::default())?);
+        let (states, actions) = history.conditioning();
+        cond.extend(layout.conditioning(&states, &actions, label));
+        let cost = task.cost(traj, 0.0, &frame, Steer::default())?;
         costs.push(Some(cost.ok_or(ControlError::Start("the task asks nothing to guide".into()))?));
     }
     let (len, std) = (traj.len(), &bench.model.norm.std[layout.cond_len()..]);

@@ -143,6 +143,9 @@ impl Store {
         if point.acceleration > 0.0 {
             steps += &format!("\0acceleration {}", point.acceleration);
         }
+        if point.label_scale != 1.0 {
+            steps += &format!("\0label scale {}", point.label_scale);
+        }
         if point.start_actions != StartActions::default() {
             let inverse = m.inverse_content.as_deref().unwrap_or("none");
             steps += &format!("\0start actions {:?} {inverse}", point.start_actions);
@@ -429,7 +432,7 @@ pub fn sweep(
         let (mut line, mut band, mut fell) = (Vec::new(), Vec::new(), Vec::new());
         let points = points(m);
         for &point in &points {
-            eprintln!("{}: {} NFE {} w {} ({trials} trials)", exp.name, m.label, point.nfe, point.scale);
+            eprintln!("{}: {} NFE {} w {} ({trials} trials)", exp.name, m.label, point.nfe, point.w());
             let rows = stored.point(m, &exp.settings, point, trials, || run(m, point))?;
             let s = summary(m, point, &rows, &exp.columns);
             let (mean, std) = (s.mean[exp.plot], s.std[exp.plot]);
@@ -442,7 +445,11 @@ pub fn sweep(
         }
         let own = &summaries[summaries.len() - points.len()..];
         for s in own {
-            let unguided = own.iter().find(|u| u.point.scale == 0.0 && u.point.nfe == s.point.nfe);
+            // The unguided point: w 0, told nothing where the model has a label to tell.
+            let unguided = own
+                .iter()
+                .filter(|u| u.point.scale == 0.0 && u.point.nfe == s.point.nfe)
+                .min_by(|a, b| a.point.label_scale.total_cmp(&b.point.label_scale));
             table.push_str(&row(m, s, unguided));
             table.push('\n');
         }
@@ -487,6 +494,7 @@ mod tests {
                 adaptive: None,
                 inverse_dynamics: 0.0,
                 acceleration: 0.0,
+                label_scale: 1.0,
                 start_actions: Default::default(),
                 approach: false,
             },

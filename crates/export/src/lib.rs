@@ -250,8 +250,15 @@ pub fn trajectory_model(model: &TrajectoryModel) -> Result<Vec<u8>, ExportError>
     let (sin, cos) = (g.op("Sin", &[&angles]), g.op("Cos", &[&angles]));
     let (sin, cos) = (g.unsqueeze(&sin, 3), g.unsqueeze(&cos, 3));
     let pairs = g.node("Concat", &[&sin, &cos], vec![int("axis", 3)]);
-    let features = g.reshape(&pairs, &[-1, c.time_features as i64]);
-    let temb = linear(&mut g, &features, "time", c.time_features)?;
+    let mut features = g.reshape(&pairs, &[-1, c.time_features as i64]);
+    if c.sample_features > 0 {
+        // A labelled model's label (the end of cond) joins the noise level's features.
+        let label: Vec<i64> = layout.label_range().map(|j| j as i64).collect();
+        let label = g.int64s(&label);
+        let label = g.node("Gather", &[&cond, &label], vec![int("axis", 1)]);
+        features = g.node("Concat", &[&features, &label], vec![int("axis", 1)]);
+    }
+    let temb = linear(&mut g, &features, "time", c.time_features + c.sample_features)?;
     let temb = g.unsqueeze(&temb, 1);
     let pos = g.floats("pos", &[c.tokens, d], param("pos")?);
     let embed = g.op("Add", &[&pos, &temb]);

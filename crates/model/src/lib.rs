@@ -33,7 +33,7 @@ pub mod trajectory;
 pub use guidance::{Gradient, Guidance};
 pub use inverse::{InverseConfig, InverseDynamics};
 pub use train::{LrSchedule, ModelError, TrainConfig, Trainer, WindowSet};
-pub use trajectory::{ModelConfig, Objective, Pairing, TaskGuidance, TaskLabel, TokenLayout, TrajectoryModel};
+pub use trajectory::{Label, ModelConfig, Objective, Pairing, TaskGuidance, TaskLabel, TokenLayout, TrajectoryModel};
 
 /// A denoising network: predicts from `x` (n x dim), noise levels `t` (n, in [0, 1]; n x 2 for
 /// MeanFlow's interval start and length) and conditioning `cond` (n x cond_dim).

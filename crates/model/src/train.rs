@@ -12,9 +12,9 @@
 //! training batch's noise and target differ.
 
 use crate::inverse::{INVERSE_FILE, InverseDynamics};
-use crate::trajectory::{Normaliser, Objective, TaskLabel, TokenLayout, TrajectoryModel};
+use crate::trajectory::{Label, Normaliser, Objective, TaskLabel, TokenLayout, TrajectoryModel};
 use crate::{ModelConfig, TrainingBatch, ddpm, fm, meanflow, path};
-use flowmimic_data::{DataError, Dataset, Shard, Stats, window, window_starts};
+use flowmimic_data::{DataError, Dataset, Shard, Stats, future_motion, window, window_starts};
 use flowmimic_io::tensors::{self, TensorError, TensorFile};
 use flowmimic_nn::Adam;
 use rand::rngs::StdRng;
@@ -86,8 +86,8 @@ pub struct TrainConfig {
     /// For a model with task labels: the clips (by name, or a name's beginning: `reach_`)
     /// whose windows are labelled `reach`; every other clip's are `walk`.
     pub reach_clips: Vec<String>,
-    /// For a model with task labels: the share of training windows whose label is left out
-    /// (all zeros), so that the model also samples without one.
+    /// For a labelled model: the share of training windows whose label is left out (all
+    /// zeros), so that the model also samples without one.
     pub label_dropout: f32,
 }
 
@@ -201,14 +201,17 @@ pub struct WindowSet {
     shards: Vec<Shard>,
     /// Each shard's task label.
     labels: Vec<TaskLabel>,
+    /// For command labels: the steps ahead whose motion labels a window.
+    command_steps: usize,
     /// (shard, current step) of every window, by side of the split.
     train: Vec<(usize, usize)>,
     validation: Vec<(usize, usize)>,
 }
 
 impl WindowSet {
-    /// Splits the dataset's windows into training and validation, labelled `reach` where their
-    /// clip's name begins with one of `reach_clips` and `walk` elsewhere. Windows are cut from
+    /// Splits the dataset's windows into training and validation. For task labels, labelled
+    /// `reach` where their clip's name begins with one of `reach_clips` and `walk` elsewhere;
+    /// for command labels, with the motion of the `command_steps` steps after them. Windows are cut from
     /// the shards when a batch asks for them, not stored: at H = 16 three hours of rollouts
     /// would take 6.5 GB as windows, 0.4 GB as shards.
     pub fn from_dataset(
@@ -217,13 +220,14 @@ impl WindowSet {
         stats: &Stats,
         validation_fraction: f64,
         reach_clips: &[String],
+        command_steps: usize,
     ) -> Result<Self, ModelError> {
         let (mut train, mut validation) = (Vec::new(), Vec::new());
         let (infos, shards): (Vec<_>, Vec<Shard>) = dataset.load_all()?.into_iter().unzip();
         let is_reach = |clip: &str| reach_clips.iter().any(|r| clip.starts_with(r.as_str()));
         let labels: Vec<TaskLabel> =
             infos.iter().map(|i| if is_reach(&i.clip) { TaskLabel::Reach } else { TaskLabel::Walk }).collect();
-        if layout.labels > 0 && !labels.contains(&TaskLabel::Reach) {
+        if layout.labels == Label::TASK && !labels.contains(&TaskLabel::Reach) {
             return Err(ModelError::Invalid(format!(
                 "{}: a model with task labels needs reaching clips, and no clip begins with one of train.reach_clips {reach_clips:?}",
                 dataset.dir.display()
@@ -244,7 +248,7 @@ impl WindowSet {
                 layout.spec.horizon
             )));
         }
-        Ok(Self { norm: Normaliser::new(&layout, stats), layout, shards, labels, train, validation })
+        Ok(Self { norm: Normaliser::new(&layout, stats), layout, shards, labels, command_steps, train, validation })
     }
 
     pub fn train_len(&self) -> usize {
@@ -269,7 +273,13 @@ impl WindowSet {
         for &r in rows {
             let (s, t) = side[r];
             let win = window(&self.shards[s], self.layout.spec, t);
-            let mut row = self.layout.window(&win.states, &win.actions, Some(self.labels[s]));
+            let label = match self.layout.labels {
+                Label::COMMAND => Label::Command(
+                    future_motion(&self.shards[s], t, self.command_steps).expect("a window's horizon lies ahead"),
+                ),
+                _ => Label::Task(self.labels[s]),
+            };
+            let mut row = self.layout.window(&win.states, &win.actions, Some(label));
             self.norm.normalise(&mut row, 0, w);
             out.extend(row);
         }

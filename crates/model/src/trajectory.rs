@@ -25,8 +25,8 @@ pub struct TokenLayout {
     pub state_dim: usize,
     pub action_dim: usize,
     pub spec: WindowSpec,
-    /// Entries of the task label at the end of the conditioning: one per [`TaskLabel`] of a
-    /// model told what its window does (`ModelConfig::task_labels`), else none.
+    /// Entries of the label at the end of the conditioning: [`Label::entries`] of a labelled
+    /// model (`ModelConfig::task_labels` or `command_labels`), else none.
     #[serde(default)]
     pub labels: usize,
 }
@@ -42,6 +42,24 @@ pub enum TaskLabel {
 
 impl TaskLabel {
     pub const ALL: [TaskLabel; 2] = [TaskLabel::Walk, TaskLabel::Reach];
+}
+
+/// What a labelled model is told of a window, in entries at the end of its conditioning.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Label {
+    /// Whether it walks or reaches (a model with task labels): a one-hot.
+    Task(TaskLabel),
+    /// The motion over its horizon (a model with command labels): forward and leftward speed
+    /// (m/s) and yaw rate (rad/s), as [`flowmimic_data::motion`] reads a window and a joystick
+    /// asks, after a 1 that says it is given.
+    Command([f32; 3]),
+}
+
+impl Label {
+    /// Entries of a task label.
+    pub const TASK: usize = TaskLabel::ALL.len();
+    /// Entries of a command label.
+    pub const COMMAND: usize = 4;
 }
 
 impl TokenLayout {
@@ -78,24 +96,32 @@ impl TokenLayout {
         self.label_at()..self.label_at() + self.labels
     }
 
-    /// The label entries for `label` (zeros for none, or for a model without labels: empty).
-    pub fn label(&self, label: Option<TaskLabel>) -> Vec<f32> {
+    /// The label entries for `label`: zeros for none, or for a label of the other kind than
+    /// the model's (a model without labels: empty).
+    pub fn label(&self, label: Option<Label>) -> Vec<f32> {
         let mut out = vec![0.0; self.labels];
-        if let Some(k) = label.and_then(|l| TaskLabel::ALL.iter().position(|&a| a == l)).filter(|&k| k < self.labels) {
-            out[k] = 1.0;
+        match label {
+            Some(Label::Task(l)) if self.labels == Label::TASK => {
+                out[TaskLabel::ALL.iter().position(|&a| a == l).expect("every label is in ALL")] = 1.0;
+            }
+            Some(Label::Command(c)) if self.labels == Label::COMMAND => {
+                out[0] = 1.0;
+                out[1..].copy_from_slice(&c);
+            }
+            _ => {}
         }
         out
     }
 
     /// The conditioning `O_t` of the history's `states` (N + 1) and `actions` (N) for `label`.
-    pub fn conditioning(&self, states: &[f32], actions: &[f32], label: Option<TaskLabel>) -> Vec<f32> {
+    pub fn conditioning(&self, states: &[f32], actions: &[f32], label: Option<Label>) -> Vec<f32> {
         let mut out = self.interleave(states, actions);
         out.extend(self.label(label));
         out
     }
 
     /// A whole window of `states` and `actions` (N + 1 + H each) for `label`.
-    pub fn window(&self, states: &[f32], actions: &[f32], label: Option<TaskLabel>) -> Vec<f32> {
+    pub fn window(&self, states: &[f32], actions: &[f32], label: Option<Label>) -> Vec<f32> {
         let mut out = self.interleave(states, actions);
         let at = self.label_at();
         out.splice(at..at, self.label(label));
@@ -143,6 +169,18 @@ pub struct ModelConfig {
     /// Whether the network is told what each window does ([`TaskLabel`], in one more token):
     /// trained with the label of its clip (`[train] reach_clips`), sampled with the task's.
     pub task_labels: bool,
+    /// Whether the network is told the motion of each window's future ([`Label::Command`], in
+    /// one more token): trained with the window's own, sampled with what the task asks of the
+    /// pelvis (the joystick's command, or the pursuit of a waypoint), so that a command selects
+    /// the data's motion instead of guidance pulling the plan's states toward it.
+    #[serde(default)]
+    pub command_labels: bool,
+    /// For command labels: the steps ahead whose motion labels a window in training (0: the
+    /// horizon H). Longer than H, the label tells where the motion goes beyond the plan, which
+    /// the history cannot: a command of standing still or walking back to a walker still
+    /// walking forward.
+    #[serde(default)]
+    pub command_steps: usize,
 }
 
 /// How a window's states and actions are cut into tokens.
@@ -172,22 +210,17 @@ impl Pairing {
         }
     }
 
-    /// Tokens per sample: the steps', and the task label's when there is one.
+    /// Tokens per sample: one per step (and a padding one for `ActionState`).
     fn tokens(self, layout: &TokenLayout) -> usize {
-        layout.tokens() + usize::from(self == Pairing::ActionState) + usize::from(layout.labels > 0)
+        layout.tokens() + usize::from(self == Pairing::ActionState)
     }
 
-    /// For each entry of a sample's tokens, the window entry it holds (`None`: zero padding):
-    /// the steps' tokens, then a last token with the task label.
+    /// For each entry of a sample's tokens, the window entry it holds (`None`: zero padding).
+    /// A label is in no token: it joins the noise level's embedding ([`TrajectoryNet::forward`]).
     fn gather(self, layout: &TokenLayout) -> Vec<Option<usize>> {
         let (at, labels) = (layout.label_at(), layout.labels);
         let steps = self.gather_steps(&TokenLayout { labels: 0, ..*layout });
-        if labels == 0 {
-            return steps;
-        }
-        let width = self.token_dim(layout);
-        let label = (at..at + labels).map(Some).chain(std::iter::repeat_n(None, width - labels));
-        steps.into_iter().map(|j| j.map(|j| if j >= at { j + labels } else { j })).chain(label).collect()
+        steps.into_iter().map(|j| j.map(|j| if j >= at { j + labels } else { j })).collect()
     }
 
     /// [`Pairing::gather`] of a layout without a task label.
@@ -222,6 +255,8 @@ impl Default for ModelConfig {
             time_features: 64,
             pairing: Pairing::default(),
             task_labels: false,
+            command_labels: false,
+            command_steps: 0,
         }
     }
 }
@@ -239,8 +274,12 @@ impl ModelConfig {
         within(self.layers, 1, 64, "layers")?;
         within(self.d_ff, 1, 65536, "d_ff")?;
         within(self.time_features, 2, 1024, "time_features")?;
+        within(self.command_steps, 0, 900, "command_steps")?;
         if !self.d_model.is_multiple_of(self.heads) {
             return Err(format!("model.d_model ({}) must be a multiple of model.heads ({})", self.d_model, self.heads));
+        }
+        if self.task_labels && self.command_labels {
+            return Err("model.task_labels and model.command_labels: a model has one kind of label".into());
         }
         if !self.time_features.is_multiple_of(2) {
             return Err(format!("model.time_features ({}) must be even", self.time_features));
@@ -252,9 +291,18 @@ impl ModelConfig {
         WindowSpec { history: self.history, horizon: self.horizon }
     }
 
-    /// Task label entries of this model's windows.
+    /// The steps ahead whose motion labels a window of a model with command labels.
+    pub fn label_steps(&self) -> usize {
+        if self.command_steps == 0 { self.horizon } else { self.command_steps }
+    }
+
+    /// Label entries of this model's windows.
     pub fn labels(&self) -> usize {
-        if self.task_labels { TaskLabel::ALL.len() } else { 0 }
+        match (self.task_labels, self.command_labels) {
+            (true, _) => Label::TASK,
+            (_, true) => Label::COMMAND,
+            _ => 0,
+        }
     }
 
     pub fn transformer(&self, layout: &TokenLayout) -> TransformerConfig {
@@ -266,6 +314,7 @@ impl ModelConfig {
             layers: self.layers,
             d_ff: self.d_ff,
             time_features: self.time_features,
+            sample_features: self.labels(),
         }
     }
 }
@@ -443,9 +492,13 @@ impl TrajectoryNet {
         out
     }
 
-    /// The Transformer's forward pass over `concat(cond, x)`, kept for a backward pass.
+    /// The Transformer's forward pass over `concat(cond, x)`, kept for a backward pass; a
+    /// labelled model's label joins the noise level's embedding, added to every token.
     pub fn forward(&self, x: &[f32], t: &[f32], cond: &[f32], n: usize) -> flowmimic_nn::transformer::Tape {
-        self.net.forward(&self.tokens(x, cond, n), &network_times(t, n), n)
+        let labels = self.layout.label_range();
+        let own: Vec<f32> =
+            cond.chunks_exact(self.layout.cond_len()).flat_map(|row| &row[labels.clone()]).copied().collect();
+        self.net.forward_with(&self.tokens(x, cond, n), &network_times(t, n), &own, n)
     }
 
     /// The future part of each sample's output tokens, each entry read from its own token.
@@ -535,6 +588,63 @@ impl Network for TrajectoryNet {
     }
 }
 
+/// Classifier-free guidance on a labelled network's label: the prediction told nothing (the
+/// label's entries zero, as training left it out in `label_dropout` of its windows) moved
+/// `scale` times the way the label moves it, `u + scale (c - u)`. Both predictions run in one
+/// batch of 2n rows.
+struct Told<'a> {
+    net: &'a dyn Network,
+    scale: f32,
+    cond_len: usize,
+    labels: std::ops::Range<usize>,
+}
+
+impl Told<'_> {
+    /// The rows twice over: first told nothing, then as given.
+    fn doubled(&self, x: &[f32], t: &[f32], cond: &[f32]) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let mut untold = cond.to_vec();
+        untold.chunks_exact_mut(self.cond_len).for_each(|row| row[self.labels.clone()].fill(0.0));
+        untold.extend_from_slice(cond);
+        ([x, x].concat(), [t, t].concat(), untold)
+    }
+
+    fn combine(&self, both: &[f32]) -> Vec<f32> {
+        let (u, c) = both.split_at(both.len() / 2);
+        u.iter().zip(c).map(|(u, c)| u + self.scale * (c - u)).collect()
+    }
+}
+
+impl Network for Told<'_> {
+    fn dim(&self) -> usize {
+        self.net.dim()
+    }
+
+    fn predict(&self, x: &[f32], t: &[f32], cond: &[f32], n: usize) -> Vec<f32> {
+        let (x, t, cond) = self.doubled(x, t, cond);
+        self.combine(&self.net.predict(&x, &t, &cond, 2 * n))
+    }
+
+    /// `y = (1 - s) u + s c`, so `(dy/dx)^T g = (1 - s) (du/dx)^T g + s (dc/dx)^T g`.
+    fn predict_pullback(
+        &self,
+        x: &[f32],
+        t: &[f32],
+        cond: &[f32],
+        n: usize,
+        cotangent: &mut dyn FnMut(&[f32]) -> Vec<f32>,
+    ) -> (Vec<f32>, Vec<f32>) {
+        let (xx, tt, cc) = self.doubled(x, t, cond);
+        let mut y = Vec::new();
+        let (_, pulled) = self.net.predict_pullback(&xx, &tt, &cc, 2 * n, &mut |both| {
+            y = self.combine(both);
+            let g = cotangent(&y);
+            g.iter().map(|g| (1.0 - self.scale) * g).chain(g.iter().map(|g| self.scale * g)).collect()
+        });
+        let (gu, gc) = pulled.split_at(pulled.len() / 2);
+        (y, gu.iter().zip(gc).map(|(a, b)| a + b).collect())
+    }
+}
+
 /// A trained model: network, normalisation and objective.
 #[derive(Clone, Debug)]
 pub struct TrajectoryModel {
@@ -580,6 +690,21 @@ impl TrajectoryModel {
         guidance: Option<&TaskGuidance>,
         rng: &mut impl Rng,
     ) -> Vec<f32> {
+        self.sample_told(cond, n, nfe, 1.0, guidance, rng)
+    }
+
+    /// [`TrajectoryModel::sample`], a labelled model's label weighed by `label_scale`
+    /// (classifier-free guidance, [`Told`]): 0 samples as if told nothing, 1 as told, above 1
+    /// past it, at two network calls' cost.
+    pub fn sample_told(
+        &self,
+        cond: &[f32],
+        n: usize,
+        nfe: usize,
+        label_scale: f32,
+        guidance: Option<&TaskGuidance>,
+        rng: &mut impl Rng,
+    ) -> Vec<f32> {
         let (c, f) = (self.layout().cond_len(), self.layout().future_len());
         let mut cond = cond.to_vec();
         self.norm.normalise(&mut cond, 0, c);
@@ -597,7 +722,18 @@ impl TrajectoryModel {
             gradient: g.gradient,
         });
         let noise: Vec<f32> = (0..n * f).map(|_| StandardNormal.sample(rng)).collect();
-        let mut x = self.sample_from(&cond, noise, n, nfe, inner.as_ref(), rng);
+        let labels = self.layout().label_range();
+        let mut x = match label_scale {
+            1.0 => self.sample_from(&cond, noise, n, nfe, inner.as_ref(), rng),
+            0.0 => {
+                cond.chunks_exact_mut(c).for_each(|row| row[labels.clone()].fill(0.0));
+                self.sample_from(&cond, noise, n, nfe, inner.as_ref(), rng)
+            }
+            scale => {
+                let told = Told { net: &self.net, scale, cond_len: c, labels };
+                self.sample_with(&told, &cond, noise, n, nfe, inner.as_ref(), rng)
+            }
+        };
         self.norm.denormalise(&mut x, c, f);
         x
     }
@@ -613,16 +749,29 @@ impl TrajectoryModel {
         guidance: Option<&Guidance>,
         rng: &mut impl Rng,
     ) -> Vec<f32> {
+        self.sample_with(&self.net, cond, noise, n, nfe, guidance, rng)
+    }
+
+    /// [`TrajectoryModel::sample_from`] with `net` in place of the model's own network.
+    #[allow(clippy::too_many_arguments)]
+    fn sample_with(
+        &self,
+        net: &dyn Network,
+        cond: &[f32],
+        noise: Vec<f32>,
+        n: usize,
+        nfe: usize,
+        guidance: Option<&Guidance>,
+        rng: &mut impl Rng,
+    ) -> Vec<f32> {
         match self.objective {
             Objective::Fm { solver, .. } => {
-                self.with_flow_net(|net| fm::sample(net, cond, noise, n, nfe, solver, guidance))
+                self.as_flow(net, |net| fm::sample(net, cond, noise, n, nfe, solver, guidance))
             }
-            Objective::MeanFlow { .. } => {
-                self.with_flow_net(|net| meanflow::sample(net, cond, noise, n, nfe, guidance))
-            }
+            Objective::MeanFlow { .. } => self.as_flow(net, |net| meanflow::sample(net, cond, noise, n, nfe, guidance)),
             Objective::Ddpm { steps, prediction, clip } => {
                 let schedule = ddpm::Schedule::cosine(steps);
-                ddpm::sample(&self.net, &schedule, prediction, cond, noise, n, nfe, clip, guidance, rng)
+                ddpm::sample(net, &schedule, prediction, cond, noise, n, nfe, clip, guidance, rng)
             }
         }
     }
@@ -630,7 +779,12 @@ impl TrajectoryModel {
     /// Runs `f` on the network as Flow Matching's and MeanFlow's samplers and MeanFlow's target
     /// read it: as a velocity, through [`path::CleanSample`] when it predicts the clean sample.
     pub(crate) fn with_flow_net<R>(&self, f: impl FnOnce(&dyn Network) -> R) -> R {
-        if self.objective.predicts_clean_flow() { f(&path::CleanSample(&self.net)) } else { f(&self.net) }
+        self.as_flow(&self.net, f)
+    }
+
+    /// [`TrajectoryModel::with_flow_net`] on `net`, the model's network or one built on it.
+    fn as_flow<R>(&self, net: &dyn Network, f: impl FnOnce(&dyn Network) -> R) -> R {
+        if self.objective.predicts_clean_flow() { f(&path::CleanSample(net)) } else { f(net) }
     }
 
     /// Network FLOPs of one sampling call for `n` samples at `nfe`.
@@ -647,10 +801,10 @@ mod tests {
 
     /// A small network with random weights everywhere, so every path of the pullback counts.
     fn small_net(pairing: Pairing) -> TrajectoryNet {
-        small_net_labelled(pairing, false)
+        small_net_labelled(pairing, false, false)
     }
 
-    fn small_net_labelled(pairing: Pairing, task_labels: bool) -> TrajectoryNet {
+    fn small_net_labelled(pairing: Pairing, task_labels: bool, command_labels: bool) -> TrajectoryNet {
         let config = ModelConfig {
             history: 1,
             horizon: 2,
@@ -661,6 +815,8 @@ mod tests {
             time_features: 4,
             pairing,
             task_labels,
+            command_labels,
+            command_steps: 0,
         };
         let spec = WindowSpec { history: 1, horizon: 2 };
         let layout = TokenLayout { state_dim: 3, action_dim: 2, spec, labels: config.labels() };
@@ -697,28 +853,48 @@ mod tests {
     }
 
     #[test]
-    fn a_task_label_sits_after_s_t_and_enters_its_own_last_token() {
+    fn a_task_label_sits_after_s_t_and_joins_the_noise_levels_embedding() {
         for pairing in [Pairing::StateAction, Pairing::ActionState, Pairing::StateActionState] {
-            let (plain, labelled) = (small_net(pairing), small_net_labelled(pairing, true));
+            let (plain, labelled) = (small_net(pairing), small_net_labelled(pairing, true, false));
             let (c, f) = (labelled.layout.cond_len(), labelled.layout.future_len());
             assert_eq!((c, f), (plain.layout.cond_len() + 2, plain.layout.future_len()), "{pairing:?}");
             let states: Vec<f32> = (0..12).map(|i| i as f32).collect();
             let actions: Vec<f32> = (0..8).map(|i| 100.0 + i as f32).collect();
-            let window = labelled.layout.window(&states, &actions, Some(TaskLabel::Reach));
-            let cond = labelled.layout.conditioning(&states[..6], &actions[..2], Some(TaskLabel::Reach));
+            let reach = Some(Label::Task(TaskLabel::Reach));
+            let window = labelled.layout.window(&states, &actions, reach);
+            let cond = labelled.layout.conditioning(&states[..6], &actions[..2], reach);
             assert_eq!(window[..c], cond[..], "{pairing:?}");
             assert_eq!(cond[c - 2..], [0.0, 1.0], "{pairing:?}");
             assert_eq!(labelled.layout.current_state(&cond), &states[3..6], "{pairing:?}");
             assert_eq!(labelled.layout.label(None), [0.0, 0.0]);
-            // The steps' tokens are the unlabelled network's; the label token is [walk, reach, 0...].
+            // The tokens are the unlabelled network's; the label moves the output through the
+            // noise level's embedding, which every token adds.
             let plain_cond = plain.layout.interleave(&states[..6], &actions[..2]);
-            let (x, width) = (&window[c..], labelled.net.config.token_dim);
+            let x = &window[c..];
             let tokens = labelled.tokens(x, &cond, 1);
-            assert_eq!(tokens[..tokens.len() - width], plain.tokens(x, &plain_cond, 1)[..], "{pairing:?}");
-            let last = &tokens[tokens.len() - width..];
-            assert!(last[..2] == [0.0, 1.0] && last[2..].iter().all(|&v| v == 0.0), "{pairing:?}");
+            assert_eq!(tokens, plain.tokens(x, &plain_cond, 1), "{pairing:?}");
             assert_eq!(labelled.future(&tokens), x, "{pairing:?}");
+            assert_eq!(labelled.net.config.sample_features, 2);
+            let walk = labelled.layout.conditioning(&states[..6], &actions[..2], Some(Label::Task(TaskLabel::Walk)));
+            let (told, other) = (labelled.predict(x, &[0.3], &cond, 1), labelled.predict(x, &[0.3], &walk, 1));
+            assert!(told.iter().zip(&other).all(|(a, b)| a != b), "{pairing:?}: every entry hears the label");
         }
+    }
+
+    #[test]
+    fn a_command_label_says_it_is_given_and_a_label_of_the_other_kind_says_nothing() {
+        let net = small_net_labelled(Pairing::StateActionState, false, true);
+        let layout = net.layout;
+        assert_eq!(layout.labels, Label::COMMAND);
+        assert_eq!(layout.label(Some(Label::Command([0.8, -0.1, 0.6]))), [1.0, 0.8, -0.1, 0.6]);
+        // Standing still asked is told apart from nothing asked.
+        assert_eq!(layout.label(Some(Label::Command([0.0; 3]))), [1.0, 0.0, 0.0, 0.0]);
+        assert_eq!(layout.label(None), [0.0; 4]);
+        assert_eq!(layout.label(Some(Label::Task(TaskLabel::Walk))), [0.0; 4]);
+        let tasked = small_net_labelled(Pairing::StateActionState, true, false).layout;
+        assert_eq!(tasked.label(Some(Label::Command([0.8, 0.0, 0.0]))), [0.0; 2]);
+        let config = ModelConfig { task_labels: true, command_labels: true, ..ModelConfig::default() };
+        assert!(config.validate().unwrap_err().contains("one kind of label"));
     }
 
     #[test]
@@ -730,6 +906,33 @@ mod tests {
         // A network predicting the clean sample, read as a velocity.
         let net = small_net(Pairing::StateAction);
         guidance_matches_finite_differences(&crate::path::CleanSample(&net), &net.layout);
+    }
+
+    /// Told at scale 1 a labelled network predicts as given, at 0 as with its label zeroed, and
+    /// in between and beyond on the line through both; guidance through it is still the
+    /// gradient of the cost of its clean estimate.
+    #[test]
+    fn a_label_weighed_by_classifier_free_guidance() {
+        let net = small_net_labelled(Pairing::StateActionState, false, true);
+        let layout = net.layout;
+        let (n, f, c) = (2, layout.future_len(), layout.cond_len());
+        let x: Vec<f32> = (0..n * f).map(|i| (i as f32 * 0.7).sin()).collect();
+        let mut cond: Vec<f32> = (0..n * c).map(|i| (i as f32 * 0.3).cos()).collect();
+        let t = vec![0.4; n];
+        let told = net.predict(&x, &t, &cond, n);
+        let told_as = |scale| Told { net: &net, scale, cond_len: c, labels: layout.label_range() };
+        let half = told_as(0.5).predict(&x, &t, &cond, n);
+        let twice = told_as(2.0).predict(&x, &t, &cond, n);
+        let same = told_as(1.0).predict(&x, &t, &cond, n);
+        cond.chunks_exact_mut(c).for_each(|row| row[layout.label_range()].fill(0.0));
+        let untold = net.predict(&x, &t, &cond, n);
+        for j in 0..told.len() {
+            let (u, c) = (untold[j], told[j]);
+            assert!((same[j] - c).abs() < 1e-5 && (half[j] - 0.5 * (u + c)).abs() < 1e-5, "{j}");
+            assert!((twice[j] - (2.0 * c - u)).abs() < 1e-4, "{j}");
+        }
+        assert!(told.iter().zip(&untold).any(|(a, b)| (a - b).abs() > 1e-3), "the label moves the prediction");
+        guidance_matches_finite_differences(&told_as(2.0), &layout);
     }
 
     fn guidance_matches_finite_differences(net: &dyn Network, layout: &TokenLayout) {

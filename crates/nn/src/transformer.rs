@@ -32,6 +32,10 @@ pub struct TransformerConfig {
     pub d_ff: usize,
     /// Sinusoidal features of the noise level (even).
     pub time_features: usize,
+    /// Features of each sample's own (a labelled model's label), embedded together with the
+    /// noise level's and so added to every token.
+    #[serde(default)]
+    pub sample_features: usize,
 }
 
 /// A named parameter tensor: its place in the flat vector and its shape.
@@ -107,7 +111,7 @@ impl Slots {
         let mut t = Layout::default();
         let d = c.d_model;
         let input = t.linear("input", d, c.token_dim);
-        let time = t.linear("time", d, c.time_features);
+        let time = t.linear("time", d, c.time_features + c.sample_features);
         let blocks = (0..c.layers)
             .map(|l| Block {
                 ln1: t.norm(&format!("blocks.{l}.ln1"), d),
@@ -377,15 +381,26 @@ impl Transformer {
     /// Forward pass: `x` is `n x tokens x token_dim`, `t` the noise levels (`n`, or `n x k`
     /// for a model of k times, such as an interval's start and length).
     pub fn forward(&self, x: &[f32], t: &[f32], n: usize) -> Tape {
+        self.forward_with(x, t, &[], n)
+    }
+
+    /// [`Transformer::forward`] with each sample's own `features` (`n x sample_features`),
+    /// embedded with its noise level's.
+    pub fn forward_with(&self, x: &[f32], t: &[f32], features: &[f32], n: usize) -> Tape {
         let c = &self.config;
+        assert_eq!(features.len(), n * c.sample_features, "features are not n x sample_features");
         let (d, l, rows) = (c.d_model, c.tokens, n * c.tokens);
         assert_eq!(x.len(), rows * c.token_dim, "input is not n x tokens x token_dim");
         let times = t.len().checked_div(n).unwrap_or(1);
         assert!(times >= 1 && t.len() == n * times, "the same number of noise levels for every sample");
         assert!(c.time_features.is_multiple_of(2 * times), "time_features must split evenly between the times");
         let s = &self.slots;
-        let tf = time_features(t, times, c.time_features);
-        let temb = dense::forward(&tf, n, self.p(&s.time.0), self.p(&s.time.1), c.time_features);
+        let mut tf = time_features(t, times, c.time_features);
+        if c.sample_features > 0 {
+            let (own, sines) = (features.chunks_exact(c.sample_features), tf.chunks_exact(c.time_features));
+            tf = sines.zip(own).flat_map(|(a, b)| a.iter().chain(b).copied()).collect();
+        }
+        let temb = dense::forward(&tf, n, self.p(&s.time.0), self.p(&s.time.1), c.time_features + c.sample_features);
         let mut h = dense::forward(x, rows, self.p(&s.input.0), self.p(&s.input.1), c.token_dim);
         let pos = self.p(&s.pos);
         for (r, row) in h.chunks_exact_mut(d).enumerate() {
@@ -590,8 +605,16 @@ mod tests {
     use rand::SeedableRng;
 
     fn small() -> Transformer {
-        let config =
-            TransformerConfig { token_dim: 5, tokens: 3, d_model: 8, heads: 2, layers: 2, d_ff: 12, time_features: 4 };
+        let config = TransformerConfig {
+            token_dim: 5,
+            tokens: 3,
+            d_model: 8,
+            heads: 2,
+            layers: 2,
+            d_ff: 12,
+            time_features: 4,
+            sample_features: 0,
+        };
         let mut rng = rand::rngs::StdRng::seed_from_u64(3);
         let mut net = Transformer::new(config, &mut rng);
         // Random parameters everywhere (not the init's ones and zeros) so every path is tested.
