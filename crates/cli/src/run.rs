@@ -10,7 +10,7 @@ use flowmimic_control::{
 use flowmimic_eval::HAND_REACHED;
 use flowmimic_eval::outcome::{BEFORE_FALL, FOLLOWED_SPEED, FOLLOWED_YAW_RATE, Outcome};
 use flowmimic_eval::protocols::{SEGMENT_SETTLE, setting_name};
-use flowmimic_model::{Gradient, Label, TrajectoryModel};
+use flowmimic_model::{Gradient, TrajectoryModel};
 use flowmimic_motion::Clip;
 use flowmimic_serve::play::PlayConfig;
 use flowmimic_sim::{Humanoid, Obstacle};
@@ -560,10 +560,12 @@ pub fn run(args: RunArgs, humanoid: &Arc<Humanoid>) -> Result<()> {
     } else {
         format!("guidance {} on steps {:?}", control.guidance_scale, control.guidance_steps())
     };
-    let label = match task.label(&model.config, None) {
-        Some(Label::Task(l)) => format!(", task label {}", setting_name(&l)),
-        _ if model.config.command_labels => ", told the command".to_string(),
-        _ => String::new(),
+    let label = if model.config.task_labels {
+        format!(", task label {}", setting_name(&task.task_label()))
+    } else if model.config.command_labels {
+        ", told the command".to_string()
+    } else {
+        String::new()
     };
     let executed = control
         .executor

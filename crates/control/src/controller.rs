@@ -466,7 +466,7 @@ impl<'m> Controller<'m> {
                         .flatten(),
                 };
                 let (states, actions) = self.histories[e].conditioning();
-                let label = tasks[e].label(&model.config, tasks[e].pelvis_command(time, &frame, steer)?);
+                let label = tasks[e].label(&model.config, time, &frame, steer)?;
                 cond.extend(layout.conditioning(&states, &actions, label));
                 let cost = tasks[e].cost(traj, time, &frame, steer)?;
                 let factor =

@@ -82,15 +82,25 @@ pub struct Task {
 pub const COMMAND_DIM: usize = 8;
 
 impl Task {
-    /// What `model` is told the task does: with task labels, reach with a hand target and walk
-    /// without; with command labels, `command`, what it asks of the pelvis
-    /// ([`Task::pelvis_command`]; nothing asked: not said); without labels, nothing.
-    pub fn label(&self, model: &ModelConfig, command: Option<[f64; 3]>) -> Option<Label> {
+    /// What `model` is told the task does at `time`: with task labels, [`Task::task_label`];
+    /// with command labels, what it asks of the pelvis ([`Task::pelvis_command`] from `frame`,
+    /// shaped by `steer`; nothing asked: not said); without labels, nothing.
+    pub fn label(
+        &self,
+        model: &ModelConfig,
+        time: f64,
+        frame: &CharFrame,
+        steer: Steer,
+    ) -> Result<Option<Label>, ControlError> {
         if model.command_labels {
-            return command.map(|c| Label::Command(c.map(|v| v as f32)));
+            return Ok(self.pelvis_command(time, frame, steer)?.map(|c| Label::Command(c.map(|v| v as f32))));
         }
-        let task = if self.reach.is_some() { TaskLabel::Reach } else { TaskLabel::Walk };
-        model.task_labels.then_some(Label::Task(task))
+        Ok(model.task_labels.then(|| Label::Task(self.task_label())))
+    }
+
+    /// What a model with task labels is told: reach with a hand target, walk without.
+    pub fn task_label(&self) -> TaskLabel {
+        if self.reach.is_some() { TaskLabel::Reach } else { TaskLabel::Walk }
     }
 
     /// How far from its waypoint the pelvis may stand to bring the hand to its target, when the

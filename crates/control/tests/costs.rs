@@ -317,12 +317,12 @@ fn a_labelled_model_is_told_what_guidance_asks_of_the_pelvis() {
     assert_eq!(Task::walk().pelvis_command(0.0, &frame, Steer::default()).unwrap(), None);
 
     let commands = ModelConfig { command_labels: true, ..ModelConfig::default() };
-    let told = joystick.label(&commands, Some(asked));
-    assert_eq!(told, Some(Label::Command(asked.map(|v| v as f32))));
-    assert_eq!(Task::walk().label(&commands, None), None, "nothing asked, nothing said");
+    let told = |task: &Task, model: &ModelConfig, steer| task.label(model, 0.0, &frame, steer).unwrap();
+    assert_eq!(told(&joystick, &commands, steer), Some(Label::Command(asked.map(|v| v as f32))));
+    assert_eq!(told(&Task::walk(), &commands, Steer::default()), None, "nothing asked, nothing said");
     let tasks = ModelConfig { task_labels: true, ..ModelConfig::default() };
     let reach = Task { reach: Some((Hand::Right, [1.0, 0.0, 1.2])), ..Task::walk() };
-    assert_eq!(reach.label(&tasks, None), Some(Label::Task(TaskLabel::Reach)));
-    assert_eq!(joystick.label(&tasks, Some(asked)), Some(Label::Task(TaskLabel::Walk)));
-    assert_eq!(joystick.label(&ModelConfig::default(), Some(asked)), None);
+    assert_eq!(told(&reach, &tasks, Steer::default()), Some(Label::Task(TaskLabel::Reach)));
+    assert_eq!(told(&joystick, &tasks, steer), Some(Label::Task(TaskLabel::Walk)));
+    assert_eq!(told(&joystick, &ModelConfig::default(), steer), None);
 }

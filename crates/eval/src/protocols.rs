@@ -721,7 +721,7 @@ pub fn guidance_effect(
         let b = env.bodies();
         let frame = CharFrame::from_root(b.pos[0], b.rot[0]);
         // The command has just begun: the walker is on its heading.
-        let label = task.label(&bench.model.config, task.pelvis_command(0.0, &frame, Steer::default())?);
+        let label = task.label(&bench.model.config, 0.0, &frame, Steer::default())?;
         let (states, actions) = history.conditioning();
         cond.extend(layout.conditioning(&states, &actions, label));
         let cost = task.cost(traj, 0.0, &frame, Steer::default())?;

@@ -25,8 +25,9 @@ pub struct TokenLayout {
     pub state_dim: usize,
     pub action_dim: usize,
     pub spec: WindowSpec,
-    /// Entries of the label at the end of the conditioning: [`Label::entries`] of a labelled
-    /// model (`ModelConfig::task_labels` or `command_labels`), else none.
+    /// Entries of the label at the end of the conditioning: [`Label::TASK`] or
+    /// [`Label::COMMAND`] for a labelled model (`ModelConfig::task_labels` or
+    /// `command_labels`), else none.
     #[serde(default)]
     pub labels: usize,
 }
@@ -49,9 +50,9 @@ impl TaskLabel {
 pub enum Label {
     /// Whether it walks or reaches (a model with task labels): a one-hot.
     Task(TaskLabel),
-    /// The motion over its horizon (a model with command labels): forward and leftward speed
-    /// (m/s) and yaw rate (rad/s), as [`flowmimic_data::motion`] reads a window and a joystick
-    /// asks, after a 1 that says it is given.
+    /// The motion ahead (a model with command labels): forward and leftward speed (m/s) and yaw
+    /// rate (rad/s), as [`flowmimic_data::future_motion`] reads the steps after a window and a
+    /// joystick asks, after a 1 that says it is given.
     Command([f32; 3]),
 }
 
@@ -166,11 +167,11 @@ pub struct ModelConfig {
     pub time_features: usize,
     /// Which state an action shares its token with.
     pub pairing: Pairing,
-    /// Whether the network is told what each window does ([`TaskLabel`], in one more token):
+    /// Whether the network is told what each window does ([`TaskLabel`], with its noise level):
     /// trained with the label of its clip (`[train] reach_clips`), sampled with the task's.
     pub task_labels: bool,
-    /// Whether the network is told the motion of each window's future ([`Label::Command`], in
-    /// one more token): trained with the window's own, sampled with what the task asks of the
+    /// Whether the network is told the motion of each window's future ([`Label::Command`], with
+    /// its noise level): trained with the window's own, sampled with what the task asks of the
     /// pelvis (the joystick's command, or the pursuit of a waypoint), so that a command selects
     /// the data's motion instead of guidance pulling the plan's states toward it.
     #[serde(default)]
@@ -223,7 +224,7 @@ impl Pairing {
         steps.into_iter().map(|j| j.map(|j| if j >= at { j + labels } else { j })).collect()
     }
 
-    /// [`Pairing::gather`] of a layout without a task label.
+    /// [`Pairing::gather`] of a layout without a label.
     fn gather_steps(self, layout: &TokenLayout) -> Vec<Option<usize>> {
         let (w, sd, td) = (layout.window_len(), layout.state_dim, layout.token_dim());
         match self {
@@ -599,11 +600,16 @@ struct Told<'a> {
     labels: std::ops::Range<usize>,
 }
 
+/// Conditioning rows of `cond_len` told nothing: their `labels` entries zeroed.
+fn untell(cond: &mut [f32], cond_len: usize, labels: &std::ops::Range<usize>) {
+    cond.chunks_exact_mut(cond_len).for_each(|row| row[labels.clone()].fill(0.0));
+}
+
 impl Told<'_> {
     /// The rows twice over: first told nothing, then as given.
     fn doubled(&self, x: &[f32], t: &[f32], cond: &[f32]) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let mut untold = cond.to_vec();
-        untold.chunks_exact_mut(self.cond_len).for_each(|row| row[self.labels.clone()].fill(0.0));
+        untell(&mut untold, self.cond_len, &self.labels);
         untold.extend_from_slice(cond);
         ([x, x].concat(), [t, t].concat(), untold)
     }
@@ -726,7 +732,7 @@ impl TrajectoryModel {
         let mut x = match label_scale {
             1.0 => self.sample_from(&cond, noise, n, nfe, inner.as_ref(), rng),
             0.0 => {
-                cond.chunks_exact_mut(c).for_each(|row| row[labels.clone()].fill(0.0));
+                untell(&mut cond, c, &labels);
                 self.sample_from(&cond, noise, n, nfe, inner.as_ref(), rng)
             }
             scale => {
@@ -924,7 +930,7 @@ mod tests {
         let half = told_as(0.5).predict(&x, &t, &cond, n);
         let twice = told_as(2.0).predict(&x, &t, &cond, n);
         let same = told_as(1.0).predict(&x, &t, &cond, n);
-        cond.chunks_exact_mut(c).for_each(|row| row[layout.label_range()].fill(0.0));
+        untell(&mut cond, c, &layout.label_range());
         let untold = net.predict(&x, &t, &cond, n);
         for j in 0..told.len() {
             let (u, c) = (untold[j], told[j]);
